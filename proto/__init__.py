@@ -1,0 +1,21 @@
+"""Versioned wire schemas (msgpack) and the topic registry. See proto/README.md."""
+
+from proto.codec import DEFAULT_LIMITS, Limits, Message, ProtocolError, decode
+from proto.control import EvalReport, Heartbeat
+from proto.episode import Augmentation, Episode
+from proto.weights import WeightsAnnouncement, WeightsBlob, tensors_digest
+
+__all__ = [
+    "DEFAULT_LIMITS",
+    "Augmentation",
+    "Episode",
+    "EvalReport",
+    "Heartbeat",
+    "Limits",
+    "Message",
+    "ProtocolError",
+    "WeightsAnnouncement",
+    "WeightsBlob",
+    "decode",
+    "tensors_digest",
+]

@@ -1,0 +1,49 @@
+"""Service status heartbeats and evaluation reports."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from proto.codec import Float, Int, MapOf, Message, Str, spec
+from proto.episode import ID_PATTERN, TASKS
+
+SERVICES = ("router", "actor", "augmenter", "learner", "evaluator", "inference", "launcher", "bench", "test")
+STATES = ("starting", "running", "stopping", "failed")
+
+
+@dataclass(frozen=True)
+class Heartbeat(Message):
+    """Periodic status of one service instance (also what `mea run`'s live table shows)."""
+
+    TYPE = "Heartbeat"
+    VERSION = 1
+
+    service: str = spec(Str(choices=SERVICES), "service kind")
+    instance_id: str = spec(Str(pattern=ID_PATTERN), "instance id, unique per service kind")
+    pid: int = spec(Int(0, 2**31), "OS process id")
+    state: str = spec(Str(choices=STATES), "lifecycle state")
+    started_at: float = spec(Float(0.0), "UNIX time (s) the process started")
+    created_at: float = spec(Float(0.0), "UNIX time (s) of this heartbeat")
+    policy_version: int = spec(Int(-1, 2**62), "weights version in use (-1: none)")
+    counters: dict = spec(MapOf(Float()), "key counters and gauges by metric-like name")
+    detail: str = spec(Str(max_len=512), "free text: last error or a short note", default="")
+
+
+@dataclass(frozen=True)
+class EvalReport(Message):
+    """Result of evaluating one weights version on held-out seeds."""
+
+    TYPE = "EvalReport"
+    VERSION = 1
+
+    evaluator_id: str = spec(Str(pattern=ID_PATTERN), "evaluator instance id")
+    run_id: str = spec(Str(pattern=ID_PATTERN), "training run id the weights belong to")
+    task: str = spec(Str(choices=TASKS), "task evaluated")
+    policy_version: int = spec(Int(0, 2**62), "weights version evaluated")
+    env_steps: int = spec(Int(-1, 2**62), "training env steps when that version was made (-1 unknown)")
+    episodes: int = spec(Int(1, 1_000_000), "evaluation episodes run")
+    success_rate: float = spec(Float(0.0, 1.0), "fraction of successful episodes")
+    mean_return: float = spec(Float(), "mean undiscounted return")
+    mean_length: float = spec(Float(0.0), "mean episode length (steps)")
+    grasp_score: float = spec(Float(0.0, 1.0), "mean s_g = (H_max - H) / H_max on success, 0 on failure")
+    created_at: float = spec(Float(0.0), "UNIX time (s) of the report")

@@ -1,0 +1,132 @@
+"""Episode: one whole rollout as the actors publish it, and augmented copies with provenance.
+
+Per-step arrays follow one convention: observations (and the privileged state recorded beside
+them) have ``T+1`` rows, one per visited state including the last; actions, rewards and the two
+end flags have ``T`` rows, one per transition. Nothing is stored twice: the next observation of
+step ``t`` is observation ``t+1``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from proto.codec import (
+    Arr,
+    Bool,
+    Float,
+    Int,
+    ListOf,
+    MapOf,
+    Message,
+    Nested,
+    Opt,
+    ProtocolError,
+    Str,
+    spec,
+)
+
+TASKS = ("block_pull", "block_pick", "drawer_open", "surgical_grasp_any")
+POLICY_KINDS = ("expert_probe", "expert_direct", "random", "learned")
+AUGMENTATION_KINDS = ("isometric", "mea", "mea+isometric")
+ID_PATTERN = r"[A-Za-z0-9_.-]{1,96}"
+ACTION_DIM = 5
+
+
+@dataclass(frozen=True)
+class Augmentation(Message):
+    """Where an augmented episode came from and how it was made (enough to regenerate it)."""
+
+    TYPE = "Augmentation"
+    VERSION = 1
+
+    source_episode_id: str = spec(Str(pattern=ID_PATTERN), "`episode_id` of the raw episode transformed")
+    kind: str = spec(Str(choices=AUGMENTATION_KINDS), "which transforms were applied")
+    seed: int = spec(Int(0, 2**63 - 1), "seed of the generator that drew the group elements")
+    copy_index: int = spec(Int(0, 1_000_000), "index of this copy among those made from the source")
+    phase_split: int = spec(Int(0, 100_000), "H_p: first step of the trivial phase (MEA); 0 if not MEA")
+    params: dict = spec(
+        MapOf(Arr(("float32", "float64", "int64"), ("N",), finite=True)),
+        "group parameters, 1-D arrays by name (e.g. `rotation` (1,), `delta_r` (H_p,))",
+    )
+
+
+@dataclass(frozen=True)
+class Episode(Message):
+    """A finished episode: policy observations, actions, rewards, flags and privileged state."""
+
+    TYPE = "Episode"
+    VERSION = 1
+
+    episode_id: str = spec(Str(pattern=ID_PATTERN), "unique id, `<actor_id>-<seed>-<counter>` by convention")
+    task: str = spec(Str(choices=TASKS), "task name")
+    seed: int = spec(Int(0, 2**63 - 1), "seed passed to the environment's reset")
+    actor_id: str = spec(Str(pattern=ID_PATTERN), "id of the actor instance that ran it")
+    policy_version: int = spec(Int(-1, 2**62), "weights version that acted; -1 for scripted or random")
+    policy_kind: str = spec(Str(choices=POLICY_KINDS), "what chose the actions")
+    is_demo: bool = spec(Bool(), "true for a scripted demonstration")
+    created_at: float = spec(Float(0.0), "UNIX time (s) when the episode finished")
+    segments: list = spec(
+        ListOf(Str(pattern=r"[a-z0-9_]{1,32}"), max_len=16),
+        "names of the S point-cloud segments; `gripper` first, then one per object",
+    )
+    points: np.ndarray = spec(
+        Arr(("float32",), ("T+1", "S", "P", 3), finite=True),
+        "segmented point clouds in the gripper-centric frame (m): origin at the gripper points' "
+        "centroid, world orientation; P points per segment (resampled to a fixed count)",
+    )
+    point_counts: np.ndarray = spec(
+        Arr(("int32",), ("T+1", "S")), "points observed per segment before resampling (0: segment unseen)"
+    )
+    jaw: np.ndarray = spec(Arr(("float32",), ("T+1",), finite=True, lo=0.0, hi=1.0), "jaw opening, 0 closed .. 1 open")
+    actions: np.ndarray = spec(
+        Arr(("float32",), ("T", ACTION_DIM), finite=True, lo=-1.0, hi=1.0),
+        "normalised actions (jaw, dx, dy, dz, dtheta)",
+    )
+    rewards: np.ndarray = spec(Arr(("float32",), ("T",), finite=True), "reward received after each action")
+    terminated: np.ndarray = spec(Arr(("bool",), ("T",)), "true on the step that ended the task (success)")
+    truncated: np.ndarray = spec(Arr(("bool",), ("T",)), "true on the step that hit the time limit")
+    gripper_pose: np.ndarray = spec(
+        Arr(("float32",), ("T+1", 4), finite=True),
+        "privileged: gripper (x, y, z, yaw) in the world frame (m, rad); not a policy input",
+    )
+    object_poses: np.ndarray = spec(
+        Arr(("float32",), ("T+1", "S-1", 7), finite=True),
+        "privileged: per object (x, y, z, qx, qy, qz, qw) in the world frame",
+    )
+    contacts: np.ndarray = spec(Arr(("bool",), ("T+1", "S-1")), "privileged: gripper touches object i")
+    images: np.ndarray | None = spec(
+        Opt(Arr(("uint8", "uint16", "float16", "float32"), ("T+1", "C", "H", "W"), finite=True)),
+        "optional policy images (channels first); nil when the consumer renders them",
+        default=None,
+    )
+    augmentation: Augmentation | None = spec(
+        Opt(Nested(Augmentation)), "nil for a raw episode; provenance for an augmented one", default=None
+    )
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.actions.shape[0])
+
+    def validate(self, dims: dict[str, int]) -> None:
+        if dims.get("T", 0) < 1:
+            raise ProtocolError("actions", "an episode needs at least one step")
+        n_seg = self.points.shape[1]
+        if len(self.segments) != n_seg:
+            raise ProtocolError("segments", f"{len(self.segments)} names for {n_seg} point segments")
+        if not self.segments or self.segments[0] != "gripper":
+            raise ProtocolError("segments", "first segment must be `gripper`")
+        if len(set(self.segments)) != len(self.segments):
+            raise ProtocolError("segments", "names must be unique")
+        if (self.point_counts < 0).any():
+            raise ProtocolError("point_counts", "negative count")
+        ends = self.terminated | self.truncated
+        if ends[:-1].any():
+            raise ProtocolError("terminated", "only the last step may end the episode")
+        if not ends[-1]:
+            raise ProtocolError("terminated", "the last step must be terminated or truncated")
+        if self.terminated[-1] and self.truncated[-1]:
+            raise ProtocolError("truncated", "a step is either terminated or truncated, not both")
+        if self.augmentation is not None and self.augmentation.phase_split > self.num_steps:
+            raise ProtocolError("augmentation.phase_split", "beyond the episode's last step")

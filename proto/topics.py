@@ -1,0 +1,164 @@
+"""Topic registry: every key expression, its message type and QoS, built and parsed here only.
+
+Keys look like ``mea/v1/<namespace>/<topic path>``. ``<namespace>`` separates training runs that
+share a Zenoh network (default ``default``). Placeholders in a topic path are single chunks.
+"""
+
+from __future__ import annotations
+
+import enum
+import re
+from dataclasses import dataclass
+
+from proto.codec import Message
+from proto.control import EvalReport, Heartbeat
+from proto.episode import Episode
+from proto.weights import WeightsAnnouncement, WeightsBlob
+
+PREFIX = "mea/v1"
+CHUNK = re.compile(r"[A-Za-z0-9_.-]{1,96}")
+
+
+class Priority(enum.Enum):
+    """Zenoh priorities, highest first (names match zenoh.Priority)."""
+
+    REAL_TIME = 1
+    INTERACTIVE_HIGH = 2
+    INTERACTIVE_LOW = 3
+    DATA_HIGH = 4
+    DATA = 5
+    DATA_LOW = 6
+    BACKGROUND = 7
+
+
+class Congestion(enum.Enum):
+    BLOCK = "block"  # never drop: the publisher waits (episodes, weights, reports)
+    DROP = "drop"  # telemetry only: losing a heartbeat is harmless
+
+
+class Kind(enum.Enum):
+    PUBSUB = "pubsub"
+    QUERY = "query"  # a queryable answers gets with the message
+    LIVELINESS = "liveliness"  # a token, no payload
+
+
+@dataclass(frozen=True)
+class QoS:
+    congestion: Congestion
+    priority: Priority
+    reliable: bool = True
+    express: bool = False
+
+
+@dataclass(frozen=True)
+class Topic:
+    name: str
+    path: str  # relative to PREFIX/<namespace>, with {placeholders}
+    kind: Kind
+    message: type[Message] | None
+    qos: QoS
+    doc: str
+
+    @property
+    def placeholders(self) -> tuple[str, ...]:
+        return tuple(re.findall(r"{(\w+)}", self.path))
+
+
+_DATA = QoS(Congestion.BLOCK, Priority.DATA)
+
+EPISODES_RAW = Topic(
+    "episodes_raw", "episodes/raw/{source}", Kind.PUBSUB, Episode, _DATA,
+    "finished episodes from actor `source`",
+)
+EPISODES_AUGMENTED = Topic(
+    "episodes_augmented", "episodes/augmented/{source}", Kind.PUBSUB, Episode, _DATA,
+    "raw episodes passed through plus augmented copies, from augmenter `source`",
+)
+WEIGHTS_ANNOUNCE = Topic(
+    "weights_announce", "weights/announce/{source}", Kind.PUBSUB, WeightsAnnouncement,
+    QoS(Congestion.BLOCK, Priority.INTERACTIVE_HIGH, express=True),
+    "a new weights version exists at learner `source`",
+)
+WEIGHTS_LATEST = Topic(
+    "weights_latest", "weights/latest/{source}", Kind.QUERY, WeightsBlob,
+    QoS(Congestion.BLOCK, Priority.DATA_HIGH),
+    "queryable: the latest weights blob; selector parameter `min_version=N` answers nothing when older",
+)
+EVAL_REPORTS = Topic(
+    "eval_reports", "eval/reports/{source}", Kind.PUBSUB, EvalReport, _DATA,
+    "evaluation results from evaluator `source`",
+)
+STATUS = Topic(
+    "status", "status/{service}/{instance}", Kind.PUBSUB, Heartbeat,
+    QoS(Congestion.DROP, Priority.BACKGROUND, reliable=False),
+    "heartbeat of a service instance, about once a second",
+)
+ALIVE = Topic(
+    "alive", "alive/{service}/{instance}", Kind.LIVELINESS, None,
+    QoS(Congestion.BLOCK, Priority.INTERACTIVE_HIGH),
+    "liveliness token held while the instance's session is open",
+)
+
+TOPICS: tuple[Topic, ...] = (
+    EPISODES_RAW, EPISODES_AUGMENTED, WEIGHTS_ANNOUNCE, WEIGHTS_LATEST, EVAL_REPORTS, STATUS, ALIVE,
+)
+
+
+class KeyError_(ValueError):
+    """A key expression could not be built or parsed."""
+
+
+def check_chunk(what: str, value: str) -> str:
+    if not isinstance(value, str) or not CHUNK.fullmatch(value):
+        raise KeyError_(f"{what}={value!r}: must match {CHUNK.pattern}")
+    return value
+
+
+def key(topic: Topic, namespace: str = "default", **parts: str) -> str:
+    """Concrete key, e.g. ``key(EPISODES_RAW, source="actor-0")``; ``"*"`` gives a wildcard chunk."""
+    check_chunk("namespace", namespace)
+    missing = set(topic.placeholders) - set(parts)
+    extra = set(parts) - set(topic.placeholders)
+    if missing or extra:
+        raise KeyError_(f"{topic.name}: missing {sorted(missing)}, unexpected {sorted(extra)}")
+    for name, value in parts.items():
+        if value != "*":
+            check_chunk(name, value)
+    return f"{PREFIX}/{namespace}/" + topic.path.format(**parts)
+
+
+def pattern(topic: Topic, namespace: str = "default") -> str:
+    """Key expression matching every instance of a topic."""
+    return key(topic, namespace, **{p: "*" for p in topic.placeholders})
+
+
+def parse(key_expr: str) -> tuple[Topic, str, dict[str, str]]:
+    """Inverse of :func:`key`: (topic, namespace, placeholder values)."""
+    head = PREFIX + "/"
+    if not key_expr.startswith(head):
+        raise KeyError_(f"{key_expr!r}: not under {PREFIX}")
+    namespace, _, rest = key_expr[len(head):].partition("/")
+    check_chunk("namespace", namespace)
+    chunks = rest.split("/")
+    for topic in TOPICS:
+        tchunks = topic.path.split("/")
+        if len(tchunks) != len(chunks):
+            continue
+        parts: dict[str, str] = {}
+        for t, c in zip(tchunks, chunks, strict=True):
+            if t.startswith("{"):
+                parts[t[1:-1]] = c
+            elif t != c:
+                break
+        else:
+            for name, value in parts.items():
+                check_chunk(name, value)
+            return topic, namespace, parts
+    raise KeyError_(f"{key_expr!r}: no topic matches")
+
+
+def by_name(name: str) -> Topic:
+    for t in TOPICS:
+        if t.name == name:
+            return t
+    raise KeyError_(f"unknown topic {name!r}")

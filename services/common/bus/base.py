@@ -1,0 +1,237 @@
+"""The bus interface every service is wired to, with two implementations (in-process, Zenoh).
+
+Messages are always encoded on publish and decoded (validated) on receive, in-process too, so the
+same wire rules apply in unit tests and in production. Transport threads only enqueue bytes;
+decoding happens in the consumer's thread when it calls ``recv``.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from proto.codec import DEFAULT_LIMITS, Limits, Message, ProtocolError
+from proto.topics import ALIVE, Kind, Topic, key, parse
+
+log = logging.getLogger(__name__)
+
+BadMessageHook = Callable[[Topic, str, ProtocolError], None]
+
+
+class Handle(Protocol):
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """One decoded message and the key it arrived on."""
+
+    key: str
+    parts: dict[str, str]
+    message: Message
+    size: int
+
+
+@dataclass
+class BusStats:
+    """Plain counters by topic name; services mirror them into Prometheus."""
+
+    published: Counter = field(default_factory=Counter)
+    published_bytes: Counter = field(default_factory=Counter)
+    received: Counter = field(default_factory=Counter)
+    received_bytes: Counter = field(default_factory=Counter)
+    bad: Counter = field(default_factory=Counter)
+
+
+class Subscription:
+    """Bounded FIFO between a transport thread and the consumer.
+
+    When the queue is full the transport thread waits (it never drops accepted data): with BLOCK
+    congestion control this pushes back on the publisher. Consumers must keep draining.
+    """
+
+    def __init__(self, bus: Bus, topic: Topic, capacity: int) -> None:
+        self._bus = bus
+        self._topic = topic
+        self._q: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=capacity)
+        self._closed = threading.Event()
+        self._undeclare: Callable[[], None] | None = None
+
+    # transport side -------------------------------------------------------------------------
+    def push(self, key_expr: str, payload: bytes) -> None:
+        while not self._closed.is_set():
+            try:
+                self._q.put((key_expr, payload), timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    # consumer side --------------------------------------------------------------------------
+    def qsize(self) -> int:
+        return self._q.qsize()
+
+    def recv(self, timeout: float | None = None) -> Delivery | None:
+        """Next valid message, or None after ``timeout`` seconds. Bad messages are counted and skipped."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                key_expr, payload = self._q.get(timeout=remaining) if remaining != 0.0 else self._q.get_nowait()
+            except queue.Empty:
+                return None
+            delivery = self._bus.decode_delivery(self._topic, key_expr, payload)
+            if delivery is not None:
+                return delivery
+
+    def drain(self, max_items: int = 1_000_000) -> list[Delivery]:
+        out = []
+        while len(out) < max_items:
+            d = self.recv(timeout=0.0)
+            if d is None:
+                break
+            out.append(d)
+        return out
+
+    def close(self) -> None:
+        self._closed.set()
+        if self._undeclare is not None:
+            self._undeclare()
+            self._undeclare = None
+
+
+class AliveWatch:
+    """Tracks which (service, instance) liveliness tokens exist; transport threads only update a set."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._alive: set[tuple[str, str]] = set()
+        self.events: queue.Queue[tuple[str, str, bool]] = queue.Queue()
+        self._undeclare: Callable[[], None] | None = None
+
+    def update(self, key_expr: str, alive: bool) -> None:
+        try:
+            topic, _, parts = parse(key_expr)
+        except ValueError:
+            return
+        if topic is not ALIVE:
+            return
+        who = (parts["service"], parts["instance"])
+        with self._lock:
+            (self._alive.add if alive else self._alive.discard)(who)
+        self.events.put((*who, alive))
+
+    def alive(self) -> set[tuple[str, str]]:
+        with self._lock:
+            return set(self._alive)
+
+    def wait_for(self, predicate: Callable[[set[tuple[str, str]]], bool], timeout: float) -> bool:
+        """Poll the alive set until ``predicate`` holds or ``timeout`` passes."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate(self.alive()):
+                return True
+            try:
+                self.events.get(timeout=0.05)
+            except queue.Empty:
+                pass
+        return predicate(self.alive())
+
+    def close(self) -> None:
+        if self._undeclare is not None:
+            self._undeclare()
+            self._undeclare = None
+
+
+QueryHandler = Callable[[dict[str, str]], "Message | bytes | None"]
+
+
+class Bus(ABC):
+    """Publish/subscribe, query/serve and liveliness over typed topics."""
+
+    def __init__(self, namespace: str = "default", limits: Limits = DEFAULT_LIMITS) -> None:
+        self.namespace = namespace
+        self.limits = limits
+        self.stats = BusStats()
+        self.on_bad_message: BadMessageHook | None = None
+
+    # helpers shared by implementations -------------------------------------------------------
+    def key(self, topic: Topic, **parts: str) -> str:
+        return key(topic, self.namespace, **parts)
+
+    def wildcard_key(self, topic: Topic, parts: dict[str, str]) -> str:
+        full = {p: parts.get(p, "*") for p in topic.placeholders}
+        return key(topic, self.namespace, **full)
+
+    def encode_for(self, topic: Topic, msg: Message | bytes) -> bytes:
+        if isinstance(msg, (bytes, bytearray)):
+            return bytes(msg)  # pre-encoded (e.g. a weights blob served many times)
+        if topic.message is None or not isinstance(msg, topic.message):
+            raise TypeError(f"{topic.name} carries {topic.message}, not {type(msg).__name__}")
+        return msg.encode()
+
+    def decode_delivery(self, topic: Topic, key_expr: str, payload: bytes) -> Delivery | None:
+        try:
+            _, _, parts = parse(key_expr)
+            msg = topic.message.decode(payload, self.limits)  # type: ignore[union-attr]
+        except (ProtocolError, ValueError) as exc:
+            err = exc if isinstance(exc, ProtocolError) else ProtocolError("<key>", str(exc))
+            self.stats.bad[topic.name] += 1
+            log.warning("rejected message", extra={"topic": topic.name, "key": key_expr, "error": str(err)})
+            if self.on_bad_message is not None:
+                self.on_bad_message(topic, key_expr, err)
+            return None
+        self.stats.received[topic.name] += 1
+        self.stats.received_bytes[topic.name] += len(payload)
+        return Delivery(key_expr, parts, msg, len(payload))
+
+    def _count_published(self, topic: Topic, n: int) -> None:
+        self.stats.published[topic.name] += 1
+        self.stats.published_bytes[topic.name] += n
+
+    @staticmethod
+    def _expect(topic: Topic, kind: Kind) -> None:
+        if topic.kind is not kind:
+            raise TypeError(f"{topic.name} is a {topic.kind.value} topic, not {kind.value}")
+
+    # the interface ---------------------------------------------------------------------------
+    @abstractmethod
+    def publish(self, topic: Topic, msg: Message | bytes, **parts: str) -> int:
+        """Publish on the concrete key given by ``parts``; returns the encoded size."""
+
+    @abstractmethod
+    def subscribe(self, topic: Topic, capacity: int = 64, **parts: str) -> Subscription:
+        """Subscribe to a topic; omitted placeholders match any value."""
+
+    @abstractmethod
+    def serve(self, topic: Topic, handler: QueryHandler, **parts: str) -> Handle:
+        """Answer queries on a QUERY topic. ``handler(params)`` runs on a bus worker thread."""
+
+    @abstractmethod
+    def query(self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0,
+              **parts: str) -> Delivery | None:
+        """Ask a QUERY topic; the first valid reply, or None if none came before ``timeout``."""
+
+    @abstractmethod
+    def declare_alive(self, service: str, instance: str) -> Handle:
+        """Hold a liveliness token until closed (or until the process dies)."""
+
+    @abstractmethod
+    def watch_alive(self, service: str = "*") -> AliveWatch:
+        """Track liveliness tokens of one service kind (or all)."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release every declared entity and the session."""
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,227 @@
+"""Zenoh implementation of the bus (eclipse-zenoh 1.10).
+
+Open it only inside the process that uses it (spawned, never forked with a live session).
+Callbacks only enqueue; queries are answered on a worker thread.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import threading
+from dataclasses import dataclass
+from typing import Literal
+
+import zenoh
+
+from proto.codec import DEFAULT_LIMITS, Limits, Message
+from proto.topics import ALIVE, Congestion, Kind, Topic
+
+from services.common.bus.base import AliveWatch, Bus, Delivery, QueryHandler, Subscription
+
+log = logging.getLogger(__name__)
+_LOG_ONCE = threading.Lock()
+_log_started = False
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    """How a process joins the Zenoh network."""
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    """Session mode: `peer` (default), `client` (all traffic through a router), or `router`."""
+    connect: tuple[str, ...] = (DEFAULT_ROUTER,)
+    """Endpoints to connect to, e.g. `tcp/10.0.0.5:7447` for a router on another host."""
+    listen: tuple[str, ...] = ()
+    """Endpoints to listen on; empty means `tcp/127.0.0.1:0` for a peer and `tcp/127.0.0.1:7447` for a router."""
+    multicast_scouting: bool = False
+    """Multicast discovery (off: explicit endpoints only, which is what works in containers and CI)."""
+    namespace: str = "default"
+    """Key namespace separating training runs that share one Zenoh network."""
+
+    def to_zenoh(self) -> zenoh.Config:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps(self.mode))
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        listen = list(self.listen)
+        if not listen:
+            listen = [DEFAULT_ROUTER] if self.mode == "router" else ["tcp/127.0.0.1:0"] if self.mode == "peer" else []
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+        connect = [e for e in self.connect if e not in listen]
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+        if self.mode == "client":
+            # wait for the router instead of failing at once (compose/launcher start order)
+            conf.insert_json5("connect/timeout_ms", json.dumps({"client": -1}))
+        return conf
+
+
+def _priority(topic: Topic) -> zenoh.Priority:
+    return getattr(zenoh.Priority, topic.qos.priority.name)
+
+
+def _congestion(topic: Topic) -> zenoh.CongestionControl:
+    return zenoh.CongestionControl.BLOCK if topic.qos.congestion is Congestion.BLOCK else zenoh.CongestionControl.DROP
+
+
+def _reliability(topic: Topic) -> zenoh.Reliability:
+    return zenoh.Reliability.RELIABLE if topic.qos.reliable else zenoh.Reliability.BEST_EFFORT
+
+
+class _Undeclare:
+    def __init__(self, entity) -> None:
+        self._entity = entity
+
+    def close(self) -> None:
+        if self._entity is not None:
+            try:
+                self._entity.undeclare()
+            except zenoh.ZError:
+                pass
+            self._entity = None
+
+
+class ZenohBus(Bus):
+    def __init__(self, cfg: ZenohConfig | None = None, limits: Limits = DEFAULT_LIMITS) -> None:
+        cfg = cfg or ZenohConfig()
+        super().__init__(cfg.namespace, limits)
+        global _log_started
+        with _LOG_ONCE:
+            if not _log_started:
+                zenoh.init_log_from_env_or(os.environ.get("MEA_ZENOH_LOG", "error"))
+                _log_started = True
+        self.cfg = cfg
+        self.session = zenoh.open(cfg.to_zenoh())
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._pub_lock = threading.Lock()
+        self._handles: list = []
+        self._queries: queue.Queue = queue.Queue()
+        self._servers: dict[str, QueryHandler] = {}
+        self._worker: threading.Thread | None = None
+        self._closed = False
+
+    # pub/sub ---------------------------------------------------------------------------------
+    def publish(self, topic: Topic, msg: Message | bytes, **parts: str) -> int:
+        self._expect(topic, Kind.PUBSUB)
+        key_expr = self.key(topic, **parts)
+        payload = self.encode_for(topic, msg)
+        with self._pub_lock:
+            pub = self._publishers.get(key_expr)
+            if pub is None:
+                pub = self.session.declare_publisher(
+                    key_expr,
+                    congestion_control=_congestion(topic),
+                    priority=_priority(topic),
+                    express=topic.qos.express,
+                    reliability=_reliability(topic),
+                )
+                self._publishers[key_expr] = pub
+        pub.put(payload)
+        self._count_published(topic, len(payload))
+        return len(payload)
+
+    def subscribe(self, topic: Topic, capacity: int = 64, **parts: str) -> Subscription:
+        self._expect(topic, Kind.PUBSUB)
+        sub = Subscription(self, topic, capacity)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            sub.push(str(sample.key_expr), sample.payload.to_bytes())
+
+        entity = self.session.declare_subscriber(self.wildcard_key(topic, parts), on_sample)
+        sub._undeclare = _Undeclare(entity).close
+        self._handles.append(sub)
+        return sub
+
+    # query/serve -----------------------------------------------------------------------------
+    def serve(self, topic: Topic, handler: QueryHandler, **parts: str):
+        self._expect(topic, Kind.QUERY)
+        key_expr = self.key(topic, **parts)
+        self._servers[key_expr] = handler
+        self._ensure_worker()
+
+        def on_query(q: zenoh.Query) -> None:
+            self._queries.put((topic, key_expr, q))
+
+        h = _Undeclare(self.session.declare_queryable(key_expr, on_query, complete=True))
+        self._handles.append(h)
+        return h
+
+    def _ensure_worker(self) -> None:
+        if self._worker is None:
+            self._worker = threading.Thread(target=self._answer_queries, name="zenoh-queries", daemon=True)
+            self._worker.start()
+
+    def _answer_queries(self) -> None:
+        while True:
+            item = self._queries.get()
+            if item is None:
+                return
+            topic, key_expr, q = item
+            try:
+                params = {k: v for k, v in q.parameters}
+                reply = self._servers[key_expr](params)
+                if reply is not None:
+                    payload = self.encode_for(topic, reply)
+                    q.reply(key_expr, payload, congestion_control=_congestion(topic), priority=_priority(topic))
+                    self._count_published(topic, len(payload))
+            except Exception:  # noqa: BLE001 - a bad query must not kill the server thread
+                log.exception("query handler failed", extra={"topic": topic.name})
+            finally:
+                q.drop()
+
+    def query(self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0,
+              **parts: str) -> Delivery | None:
+        self._expect(topic, Kind.QUERY)
+        selector = self.wildcard_key(topic, parts)
+        if params:
+            selector += "?" + ";".join(f"{k}={v}" for k, v in params.items())
+        replies = self.session.get(
+            selector, timeout=timeout, congestion_control=_congestion(topic), priority=_priority(topic)
+        )
+        result = None
+        for reply in replies:
+            if result is None and reply.ok is not None:
+                sample = reply.ok
+                result = self.decode_delivery(topic, str(sample.key_expr), sample.payload.to_bytes())
+        return result
+
+    # liveliness ------------------------------------------------------------------------------
+    def declare_alive(self, service: str, instance: str):
+        token = self.session.liveliness().declare_token(self.key(ALIVE, service=service, instance=instance))
+        h = _Undeclare(token)
+        self._handles.append(h)
+        return h
+
+    def watch_alive(self, service: str = "*") -> AliveWatch:
+        watch = AliveWatch()
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            watch.update(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+        entity = self.session.liveliness().declare_subscriber(
+            self.key(ALIVE, service=service, instance="*"), on_sample, history=True
+        )
+        watch._undeclare = _Undeclare(entity).close
+        self._handles.append(watch)
+        return watch
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for h in reversed(self._handles):
+            h.close()
+        with self._pub_lock:
+            for pub in self._publishers.values():
+                try:
+                    pub.undeclare()
+                except zenoh.ZError:
+                    pass
+            self._publishers.clear()
+        if self._worker is not None:
+            self._queries.put(None)
+            self._worker.join(timeout=2.0)
+        self.session.close()
