@@ -52,7 +52,7 @@ class Limits:
     max_string: int = 1024
     """Longest string field, in characters."""
     max_entries: int = 4096
-    """Most entries in a map or list field."""
+    """Most entries in any map or list of a message (checked at each msgpack header)."""
     max_depth: int = 32
     """Deepest nesting of maps and lists."""
 
@@ -68,7 +68,8 @@ DEFAULT_LIMITS = Limits()
 def _to_wire(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         wire = wire_dtype(obj)
-        arr = np.ascontiguousarray(obj, dtype=WIRE_DTYPES[wire])
+        # reshape: ascontiguousarray turns a 0-d array into shape (1,), which would not round-trip
+        arr = np.ascontiguousarray(obj, dtype=WIRE_DTYPES[wire]).reshape(obj.shape)
         payload = msgpack.packb([wire, list(arr.shape), arr.tobytes()], use_bin_type=True)
         return msgpack.ExtType(EXT_NDARRAY, payload)
     if isinstance(obj, np.generic):
@@ -94,7 +95,16 @@ def _make_ext_hook(limits: Limits):
         if code != EXT_NDARRAY:
             raise ProtocolError("<ext>", f"unknown msgpack extension type {code}")
         try:
-            head = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True)
+            # The header is [dtype, shape, data] with at most max_ndim dims: cap array/map headers so
+            # forged nested lengths cannot make msgpack preallocate large lists.
+            head = msgpack.unpackb(
+                payload,
+                raw=False,
+                strict_map_key=True,
+                use_list=True,
+                max_array_len=max(3, limits.max_ndim),
+                max_map_len=0,
+            )
         except Exception as exc:  # noqa: BLE001 - msgpack raises many types
             raise ProtocolError("<ndarray>", f"malformed ndarray header ({type(exc).__name__})") from None
         if not (isinstance(head, list) and len(head) == 3):
@@ -104,7 +114,7 @@ def _make_ext_hook(limits: Limits):
             raise ProtocolError("<ndarray>", f"dtype {dtype_s!r} not allowed")
         if not isinstance(shape, list) or len(shape) > limits.max_ndim:
             raise ProtocolError("<ndarray>", f"shape must be a list of at most {limits.max_ndim} ints")
-        if not all(type(d) is int and 0 <= d for d in shape):
+        if not all(type(d) is int and d >= 0 for d in shape):
             raise ProtocolError("<ndarray>", "shape entries must be non-negative ints")
         if not isinstance(data, bytes):
             raise ProtocolError("<ndarray>", "data must be bytes")
@@ -127,10 +137,19 @@ def unpack(data: bytes | bytearray | memoryview, limits: Limits = DEFAULT_LIMITS
     if len(data) > limits.max_message_bytes:
         raise ProtocolError("<message>", f"{len(data)} bytes over cap {limits.max_message_bytes}")
     try:
-        # max_*_len default to len(data): a forged length prefix cannot allocate more than the
-        # message itself holds.
+        # max_*_len default to len(data): a forged str/bin/ext length cannot allocate more than the
+        # message itself holds. Array headers are also capped at max_entries: msgpack preallocates
+        # each list it opens, so ~1000 nested forged array headers would otherwise cost up to
+        # 1000 x 80 KB from a message of a few KB (now at most ~1024 x max_entries x 8 bytes).
+        entries = min(len(data), limits.max_entries)
         obj = msgpack.unpackb(
-            data, raw=False, strict_map_key=True, use_list=True, ext_hook=_make_ext_hook(limits)
+            data,
+            raw=False,
+            strict_map_key=True,
+            use_list=True,
+            max_array_len=entries,
+            max_map_len=entries,
+            ext_hook=_make_ext_hook(limits),
         )
     except ProtocolError:
         raise
@@ -157,6 +176,16 @@ def _check_depth(obj: Any, max_depth: int) -> None:
 # --------------------------------------------------------------------------------------------
 # Field specs: each message field declares what it may hold
 # --------------------------------------------------------------------------------------------
+
+
+def _range(lo: float | None, hi: float | None) -> str:
+    if lo is None and hi is None:
+        return ""
+    if hi is None:
+        return f", >= {lo}"
+    if lo is None:
+        return f", <= {hi}"
+    return f", in [{lo}, {hi}]"
 
 
 class Spec:
@@ -206,7 +235,7 @@ class Int(Spec):
         return value
 
     def describe(self):
-        return f"int in [{self.lo}, {self.hi}]"
+        return "int" + _range(self.lo, self.hi)
 
 
 @dataclass(frozen=True)
@@ -225,7 +254,7 @@ class Float(Spec):
         return value
 
     def describe(self):
-        return f"float64, finite, in [{self.lo}, {self.hi}]"
+        return "float64, finite" + _range(self.lo, self.hi)
 
 
 @dataclass(frozen=True)
@@ -244,8 +273,11 @@ Dim = int | str  # an int is fixed; a str names a symbolic dimension, optionally
 
 
 def _parse_dim(d: str) -> tuple[str, int]:
-    name, _, off = d.partition("+")
-    return name, int(off) if off else 0
+    """``"T"`` -> ("T", 0), ``"T+1"`` -> ("T", 1), ``"S-1"`` -> ("S", -1)."""
+    m = re.fullmatch(r"([A-Za-z_]\w*)([+-]\d+)?", d)
+    if m is None:
+        raise ValueError(f"bad symbolic dim {d!r}")
+    return m.group(1), int(m.group(2) or 0)
 
 
 @dataclass(frozen=True)
@@ -267,13 +299,16 @@ class Arr(Spec):
             raise ProtocolError(path, f"expected ndarray, got {type(value).__name__}")
         if value.dtype.name not in self.dtypes:
             raise ProtocolError(path, f"dtype {value.dtype.name} not in {list(self.dtypes)}")
-        if self.shape == ANY_SHAPE:
-            pass
-        elif value.ndim != len(self.shape):
-            raise ProtocolError(path, f"expected {len(self.shape)} dims, got shape {value.shape}")
-        for axis, (want, got) in enumerate(zip(self.shape, value.shape, strict=False)):
-            if self.shape == ANY_SHAPE:
-                break
+        if self.shape != ANY_SHAPE:
+            self._check_shape(path, value.shape, dims)
+        if value.dtype.kind == "f" and value.size:
+            self._check_values(path, value)
+        return value
+
+    def _check_shape(self, path: str, shape: tuple[int, ...], dims: dict[str, int]) -> None:
+        if len(shape) != len(self.shape):
+            raise ProtocolError(path, f"expected {len(self.shape)} dims, got shape {shape}")
+        for axis, (want, got) in enumerate(zip(self.shape, shape, strict=True)):
             if isinstance(want, int):
                 if got != want:
                     raise ProtocolError(path, f"axis {axis} must be {want}, got {got}")
@@ -288,22 +323,21 @@ class Arr(Spec):
                 raise ProtocolError(path, f"axis {axis} is {got}, too small for {want}")
             else:
                 dims[name] = got - off
-        if value.dtype.kind == "f" and value.size:
-            if self.finite and not np.isfinite(value).all():
-                raise ProtocolError(path, "contains NaN or inf")
-            if self.lo is not None and float(np.nanmin(value)) < self.lo:
-                raise ProtocolError(path, f"values below {self.lo}")
-            if self.hi is not None and float(np.nanmax(value)) > self.hi:
-                raise ProtocolError(path, f"values above {self.hi}")
-        return value
+
+    def _check_values(self, path: str, value: np.ndarray) -> None:
+        if self.finite and not np.isfinite(value).all():
+            raise ProtocolError(path, "contains NaN or inf")
+        if self.lo is not None and float(np.nanmin(value)) < self.lo:
+            raise ProtocolError(path, f"values below {self.lo}")
+        if self.hi is not None and float(np.nanmax(value)) > self.hi:
+            raise ProtocolError(path, f"values above {self.hi}")
 
     def describe(self):
         if self.shape == ANY_SHAPE:
             return f"ndarray {'|'.join(self.dtypes)}, any shape"
         shape = "(" + ", ".join(str(d) for d in self.shape) + ("," if len(self.shape) == 1 else "") + ")"
         extra = ", finite" if self.finite else ""
-        if self.lo is not None or self.hi is not None:
-            extra += f", in [{self.lo}, {self.hi}]"
+        extra += _range(self.lo, self.hi)
         return f"ndarray {'|'.join(self.dtypes)} {shape}{extra}"
 
 
@@ -388,6 +422,7 @@ class Message:
 
     TYPE: ClassVar[str]
     VERSION: ClassVar[int]
+    NESTED_ONLY: ClassVar[bool] = False  # only ever a field of another message
     _REGISTRY: ClassVar[dict[str, type[Message]]] = {}
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -411,13 +446,15 @@ class Message:
         return out
 
     @classmethod
-    def from_wire(cls, obj: Any, limits: Limits = DEFAULT_LIMITS, path: str = "") -> Self:
+    def from_wire(
+        cls, obj: Any, limits: Limits = DEFAULT_LIMITS, path: str = "", top_level: bool = False
+    ) -> Self:
         where = path or cls.TYPE
         if not isinstance(obj, dict):
             raise ProtocolError(where, f"expected map, got {type(obj).__name__}")
         known = {f.name for f in cls.fields()}
         for k in obj:
-            if k not in known and k not in ("_type", "_v"):
+            if k not in known and not (top_level and k in ("_type", "_v")):
                 raise ProtocolError(f"{where}.{str(k)[:64]}", "unknown field")
         dims: dict[str, int] = {}
         values: dict[str, Any] = {}
@@ -438,6 +475,8 @@ class Message:
 
     def encode(self) -> bytes:
         """Serialise with the type tag and schema version."""
+        if self.NESTED_ONLY:
+            raise TypeError(f"{self.TYPE} is only sent inside another message")
         wire = {"_type": self.TYPE, "_v": self.VERSION}
         wire.update(self.to_wire())
         return pack(wire)
@@ -458,14 +497,14 @@ def decode(data: bytes | bytearray | memoryview, limits: Limits = DEFAULT_LIMITS
         raise ProtocolError("<message>", f"top level must be a map, got {type(obj).__name__}")
     type_name = obj.get("_type")
     cls = Message._REGISTRY.get(type_name) if isinstance(type_name, str) else None
-    if cls is None:
+    if cls is None or cls.NESTED_ONLY:
         raise ProtocolError("_type", f"unknown message type {str(type_name)[:64]!r}")
     version = obj.get("_v")
     if type(version) is not int:
         raise ProtocolError("_v", "schema version missing or not an int")
     if version != cls.VERSION:
         raise ProtocolError("_v", f"{cls.TYPE} schema version {version} not supported (reads {cls.VERSION})")
-    return cls.from_wire(obj, limits)
+    return cls.from_wire(obj, limits, top_level=True)
 
 
 def field_table(cls: type[Message]) -> list[tuple[str, str, str, bool]]:

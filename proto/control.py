@@ -20,7 +20,7 @@ class Heartbeat(Message):
 
     service: str = spec(Str(choices=SERVICES), "service kind")
     instance_id: str = spec(Str(pattern=ID_PATTERN), "instance id, unique per service kind")
-    pid: int = spec(Int(0, 2**31), "OS process id")
+    pid: int = spec(Int(0, 2**31 - 1), "OS process id")
     state: str = spec(Str(choices=STATES), "lifecycle state")
     started_at: float = spec(Float(0.0), "UNIX time (s) the process started")
     created_at: float = spec(Float(0.0), "UNIX time (s) of this heartbeat")

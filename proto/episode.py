@@ -40,6 +40,7 @@ class Augmentation(Message):
 
     TYPE = "Augmentation"
     VERSION = 1
+    NESTED_ONLY = True
 
     source_episode_id: str = spec(Str(pattern=ID_PATTERN), "`episode_id` of the raw episode transformed")
     kind: str = spec(Str(choices=AUGMENTATION_KINDS), "which transforms were applied")
@@ -79,7 +80,9 @@ class Episode(Message):
     point_counts: np.ndarray = spec(
         Arr(("int32",), ("T+1", "S")), "points observed per segment before resampling (0: segment unseen)"
     )
-    jaw: np.ndarray = spec(Arr(("float32",), ("T+1",), finite=True, lo=0.0, hi=1.0), "jaw opening, 0 closed .. 1 open")
+    jaw: np.ndarray = spec(
+        Arr(("float32",), ("T+1",), finite=True, lo=0.0, hi=1.0), "jaw opening, 0 closed .. 1 open"
+    )
     actions: np.ndarray = spec(
         Arr(("float32",), ("T", ACTION_DIM), finite=True, lo=-1.0, hi=1.0),
         "normalised actions (jaw, dx, dy, dz, dtheta)",

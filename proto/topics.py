@@ -67,50 +67,80 @@ class Topic:
 _DATA = QoS(Congestion.BLOCK, Priority.DATA)
 
 EPISODES_RAW = Topic(
-    "episodes_raw", "episodes/raw/{source}", Kind.PUBSUB, Episode, _DATA,
+    "episodes_raw",
+    "episodes/raw/{source}",
+    Kind.PUBSUB,
+    Episode,
+    _DATA,
     "finished episodes from actor `source`",
 )
 EPISODES_AUGMENTED = Topic(
-    "episodes_augmented", "episodes/augmented/{source}", Kind.PUBSUB, Episode, _DATA,
+    "episodes_augmented",
+    "episodes/augmented/{source}",
+    Kind.PUBSUB,
+    Episode,
+    _DATA,
     "raw episodes passed through plus augmented copies, from augmenter `source`",
 )
 WEIGHTS_ANNOUNCE = Topic(
-    "weights_announce", "weights/announce/{source}", Kind.PUBSUB, WeightsAnnouncement,
+    "weights_announce",
+    "weights/announce/{source}",
+    Kind.PUBSUB,
+    WeightsAnnouncement,
     QoS(Congestion.BLOCK, Priority.INTERACTIVE_HIGH, express=True),
     "a new weights version exists at learner `source`",
 )
 WEIGHTS_LATEST = Topic(
-    "weights_latest", "weights/latest/{source}", Kind.QUERY, WeightsBlob,
+    "weights_latest",
+    "weights/latest/{source}",
+    Kind.QUERY,
+    WeightsBlob,
     QoS(Congestion.BLOCK, Priority.DATA_HIGH),
     "queryable: the latest weights blob; selector parameter `min_version=N` answers nothing when older",
 )
 EVAL_REPORTS = Topic(
-    "eval_reports", "eval/reports/{source}", Kind.PUBSUB, EvalReport, _DATA,
+    "eval_reports",
+    "eval/reports/{source}",
+    Kind.PUBSUB,
+    EvalReport,
+    _DATA,
     "evaluation results from evaluator `source`",
 )
 STATUS = Topic(
-    "status", "status/{service}/{instance}", Kind.PUBSUB, Heartbeat,
+    "status",
+    "status/{service}/{instance}",
+    Kind.PUBSUB,
+    Heartbeat,
     QoS(Congestion.DROP, Priority.BACKGROUND, reliable=False),
     "heartbeat of a service instance, about once a second",
 )
 ALIVE = Topic(
-    "alive", "alive/{service}/{instance}", Kind.LIVELINESS, None,
+    "alive",
+    "alive/{service}/{instance}",
+    Kind.LIVELINESS,
+    None,
     QoS(Congestion.BLOCK, Priority.INTERACTIVE_HIGH),
     "liveliness token held while the instance's session is open",
 )
 
 TOPICS: tuple[Topic, ...] = (
-    EPISODES_RAW, EPISODES_AUGMENTED, WEIGHTS_ANNOUNCE, WEIGHTS_LATEST, EVAL_REPORTS, STATUS, ALIVE,
+    EPISODES_RAW,
+    EPISODES_AUGMENTED,
+    WEIGHTS_ANNOUNCE,
+    WEIGHTS_LATEST,
+    EVAL_REPORTS,
+    STATUS,
+    ALIVE,
 )
 
 
-class KeyError_(ValueError):
+class TopicKeyError(ValueError):
     """A key expression could not be built or parsed."""
 
 
 def check_chunk(what: str, value: str) -> str:
     if not isinstance(value, str) or not CHUNK.fullmatch(value):
-        raise KeyError_(f"{what}={value!r}: must match {CHUNK.pattern}")
+        raise TopicKeyError(f"{what}={value!r}: must match {CHUNK.pattern}")
     return value
 
 
@@ -120,7 +150,7 @@ def key(topic: Topic, namespace: str = "default", **parts: str) -> str:
     missing = set(topic.placeholders) - set(parts)
     extra = set(parts) - set(topic.placeholders)
     if missing or extra:
-        raise KeyError_(f"{topic.name}: missing {sorted(missing)}, unexpected {sorted(extra)}")
+        raise TopicKeyError(f"{topic.name}: missing {sorted(missing)}, unexpected {sorted(extra)}")
     for name, value in parts.items():
         if value != "*":
             check_chunk(name, value)
@@ -136,8 +166,8 @@ def parse(key_expr: str) -> tuple[Topic, str, dict[str, str]]:
     """Inverse of :func:`key`: (topic, namespace, placeholder values)."""
     head = PREFIX + "/"
     if not key_expr.startswith(head):
-        raise KeyError_(f"{key_expr!r}: not under {PREFIX}")
-    namespace, _, rest = key_expr[len(head):].partition("/")
+        raise TopicKeyError(f"{key_expr!r}: not under {PREFIX}")
+    namespace, _, rest = key_expr[len(head) :].partition("/")
     check_chunk("namespace", namespace)
     chunks = rest.split("/")
     for topic in TOPICS:
@@ -154,11 +184,11 @@ def parse(key_expr: str) -> tuple[Topic, str, dict[str, str]]:
             for name, value in parts.items():
                 check_chunk(name, value)
             return topic, namespace, parts
-    raise KeyError_(f"{key_expr!r}: no topic matches")
+    raise TopicKeyError(f"{key_expr!r}: no topic matches")
 
 
 def by_name(name: str) -> Topic:
     for t in TOPICS:
         if t.name == name:
             return t
-    raise KeyError_(f"unknown topic {name!r}")
+    raise TopicKeyError(f"unknown topic {name!r}")

@@ -8,7 +8,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from proto.codec import ANY_SHAPE, WIRE_DTYPES, Arr, Float, Int, MapOf, Message, ProtocolError, Str, spec, wire_dtype
+from proto.codec import (
+    ANY_SHAPE,
+    WIRE_DTYPES,
+    Arr,
+    Float,
+    Int,
+    MapOf,
+    Message,
+    ProtocolError,
+    Str,
+    spec,
+    wire_dtype,
+)
 
 ALGORITHMS = ("equi_rsac", "rsac", "gasv2")
 DIGEST_PATTERN = r"[0-9a-f]{64}"
@@ -20,7 +32,7 @@ def tensors_digest(tensors: dict[str, np.ndarray]) -> str:
     h = hashlib.sha256()
     for name in sorted(tensors):
         wire = wire_dtype(tensors[name])
-        arr = np.ascontiguousarray(tensors[name], dtype=WIRE_DTYPES[wire])
+        arr = np.ascontiguousarray(tensors[name], dtype=WIRE_DTYPES[wire]).reshape(np.shape(tensors[name]))
         h.update(f"{name}\0{wire}\0{','.join(map(str, arr.shape))}\0".encode())
         h.update(arr.tobytes())
     return h.hexdigest()
@@ -61,7 +73,12 @@ class WeightsBlob(Message):
 
     @classmethod
     def create(
-        cls, version: int, algorithm: str, run_id: str, tensors: dict[str, np.ndarray], config_json: str = "{}"
+        cls,
+        version: int,
+        algorithm: str,
+        run_id: str,
+        tensors: dict[str, np.ndarray],
+        config_json: str = "{}",
     ) -> WeightsBlob:
         return cls(
             version=version,

@@ -7,6 +7,7 @@ decoding happens in the consumer's thread when it calls ``recv``.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -83,7 +84,9 @@ class Subscription:
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
             try:
-                key_expr, payload = self._q.get(timeout=remaining) if remaining != 0.0 else self._q.get_nowait()
+                key_expr, payload = (
+                    self._q.get(timeout=remaining) if remaining != 0.0 else self._q.get_nowait()
+                )
             except queue.Empty:
                 return None
             delivery = self._bus.decode_delivery(self._topic, key_expr, payload)
@@ -137,10 +140,8 @@ class AliveWatch:
         while time.monotonic() < deadline:
             if predicate(self.alive()):
                 return True
-            try:
+            with contextlib.suppress(queue.Empty):
                 self.events.get(timeout=0.05)
-            except queue.Empty:
-                pass
         return predicate(self.alive())
 
     def close(self) -> None:
@@ -214,8 +215,9 @@ class Bus(ABC):
         """Answer queries on a QUERY topic. ``handler(params)`` runs on a bus worker thread."""
 
     @abstractmethod
-    def query(self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0,
-              **parts: str) -> Delivery | None:
+    def query(
+        self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0, **parts: str
+    ) -> Delivery | None:
         """Ask a QUERY topic; the first valid reply, or None if none came before ``timeout``."""
 
     @abstractmethod

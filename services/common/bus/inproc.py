@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 from dataclasses import dataclass, field
 
 from proto.codec import DEFAULT_LIMITS, Limits, Message
 from proto.topics import ALIVE, Kind, Topic
-
 from services.common.bus.base import AliveWatch, Bus, Delivery, QueryHandler, Subscription
+
+log = logging.getLogger(__name__)
 
 
 def key_matches(pattern: str, key_expr: str) -> bool:
@@ -83,6 +85,8 @@ class InProcBus(Bus):
         self._expect(topic, Kind.QUERY)
         entry = (self.key(topic, **parts), handler)
         with self.hub.lock:
+            if any(k == entry[0] for k, _ in self.hub.queryables):
+                raise ValueError(f"{entry[0]} is already served")
             self.hub.queryables.append(entry)
 
         def undeclare() -> None:
@@ -94,14 +98,19 @@ class InProcBus(Bus):
         self._handles.append(h)
         return h
 
-    def query(self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0,
-              **parts: str) -> Delivery | None:
+    def query(
+        self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0, **parts: str
+    ) -> Delivery | None:
         self._expect(topic, Kind.QUERY)
         pattern = self.wildcard_key(topic, parts)
         with self.hub.lock:
             targets = [(k, h) for k, h in self.hub.queryables if key_matches(pattern, k)]
         for key_expr, handler in targets:
-            reply = handler(dict(params or {}))
+            try:
+                reply = handler(dict(params or {}))
+            except Exception:  # noqa: BLE001 - same as Zenoh: a failing server answers nothing
+                log.exception("query handler failed", extra={"topic": topic.name})
+                continue
             if reply is None:
                 continue
             payload = self.encode_for(topic, reply)

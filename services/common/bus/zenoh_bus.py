@@ -6,6 +6,7 @@ Callbacks only enqueue; queries are answered on a worker thread.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -18,7 +19,6 @@ import zenoh
 
 from proto.codec import DEFAULT_LIMITS, Limits, Message
 from proto.topics import ALIVE, Congestion, Kind, Topic
-
 from services.common.bus.base import AliveWatch, Bus, Delivery, QueryHandler, Subscription
 
 log = logging.getLogger(__name__)
@@ -34,8 +34,9 @@ class ZenohConfig:
 
     mode: Literal["peer", "client", "router"] = "peer"
     """Session mode: `peer` (default), `client` (all traffic through a router), or `router`."""
-    connect: tuple[str, ...] = (DEFAULT_ROUTER,)
-    """Endpoints to connect to, e.g. `tcp/10.0.0.5:7447` for a router on another host."""
+    connect: tuple[str, ...] = ()
+    """Endpoints to connect to, e.g. `tcp/10.0.0.5:7447`; empty means `tcp/127.0.0.1:7447` for a peer or
+    client and nothing for a router."""
     listen: tuple[str, ...] = ()
     """Endpoints to listen on; empty means `tcp/127.0.0.1:0` for a peer and `tcp/127.0.0.1:7447` for a router."""
     multicast_scouting: bool = False
@@ -49,9 +50,16 @@ class ZenohConfig:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         listen = list(self.listen)
         if not listen:
-            listen = [DEFAULT_ROUTER] if self.mode == "router" else ["tcp/127.0.0.1:0"] if self.mode == "peer" else []
+            listen = (
+                [DEFAULT_ROUTER]
+                if self.mode == "router"
+                else ["tcp/127.0.0.1:0"]
+                if self.mode == "peer"
+                else []
+            )
         conf.insert_json5("listen/endpoints", json.dumps(listen))
-        connect = [e for e in self.connect if e not in listen]
+        connect = list(self.connect) or ([] if self.mode == "router" else [DEFAULT_ROUTER])
+        connect = [e for e in connect if e not in listen]
         conf.insert_json5("connect/endpoints", json.dumps(connect))
         if self.mode == "client":
             # wait for the router instead of failing at once (compose/launcher start order)
@@ -64,7 +72,11 @@ def _priority(topic: Topic) -> zenoh.Priority:
 
 
 def _congestion(topic: Topic) -> zenoh.CongestionControl:
-    return zenoh.CongestionControl.BLOCK if topic.qos.congestion is Congestion.BLOCK else zenoh.CongestionControl.DROP
+    return (
+        zenoh.CongestionControl.BLOCK
+        if topic.qos.congestion is Congestion.BLOCK
+        else zenoh.CongestionControl.DROP
+    )
 
 
 def _reliability(topic: Topic) -> zenoh.Reliability:
@@ -77,10 +89,8 @@ class _Undeclare:
 
     def close(self) -> None:
         if self._entity is not None:
-            try:
+            with contextlib.suppress(zenoh.ZError):
                 self._entity.undeclare()
-            except zenoh.ZError:
-                pass
             self._entity = None
 
 
@@ -139,13 +149,22 @@ class ZenohBus(Bus):
     def serve(self, topic: Topic, handler: QueryHandler, **parts: str):
         self._expect(topic, Kind.QUERY)
         key_expr = self.key(topic, **parts)
+        if key_expr in self._servers:
+            raise ValueError(f"{key_expr} is already served by this bus")
         self._servers[key_expr] = handler
         self._ensure_worker()
 
         def on_query(q: zenoh.Query) -> None:
             self._queries.put((topic, key_expr, q))
 
-        h = _Undeclare(self.session.declare_queryable(key_expr, on_query, complete=True))
+        entity = _Undeclare(self.session.declare_queryable(key_expr, on_query, complete=True))
+
+        class _Served:
+            def close(inner) -> None:  # noqa: N805 - closure over the bus
+                entity.close()
+                self._servers.pop(key_expr, None)
+
+        h = _Served()
         self._handles.append(h)
         return h
 
@@ -162,18 +181,20 @@ class ZenohBus(Bus):
             topic, key_expr, q = item
             try:
                 params = {k: v for k, v in q.parameters}
-                reply = self._servers[key_expr](params)
+                handler = self._servers.get(key_expr)
+                reply = handler(params) if handler is not None else None
                 if reply is not None:
                     payload = self.encode_for(topic, reply)
-                    q.reply(key_expr, payload, congestion_control=_congestion(topic), priority=_priority(topic))
+                    q.reply(key_expr, payload)  # replies travel with the query's QoS
                     self._count_published(topic, len(payload))
             except Exception:  # noqa: BLE001 - a bad query must not kill the server thread
                 log.exception("query handler failed", extra={"topic": topic.name})
             finally:
                 q.drop()
 
-    def query(self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0,
-              **parts: str) -> Delivery | None:
+    def query(
+        self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0, **parts: str
+    ) -> Delivery | None:
         self._expect(topic, Kind.QUERY)
         selector = self.wildcard_key(topic, parts)
         if params:
@@ -216,10 +237,8 @@ class ZenohBus(Bus):
             h.close()
         with self._pub_lock:
             for pub in self._publishers.values():
-                try:
+                with contextlib.suppress(zenoh.ZError):
                     pub.undeclare()
-                except zenoh.ZError:
-                    pass
             self._publishers.clear()
         if self._worker is not None:
             self._queries.put(None)

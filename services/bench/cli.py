@@ -1,0 +1,36 @@
+"""`mea bench NAME`: benchmarks that print a table, or exactly one JSON object with --json."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Sequence
+
+import tyro
+
+# name -> (module, config class, help); each module has run(cfg) -> dict
+BENCHES: dict[str, tuple[str, str, str]] = {
+    "transport": (
+        "services.bench.transport",
+        "TransportBenchConfig",
+        "wire codec and Zenoh transport speeds",
+    ),
+}
+
+
+def main(argv: Sequence[str]) -> int:
+    args = list(argv)
+    if not args or args[0] in ("-h", "--help"):
+        print("usage: mea bench NAME [OPTIONS] [--json]\n\nbenchmarks:")
+        for name, (_, _, text) in BENCHES.items():
+            print(f"  {name:<10} {text}")
+        return 0
+    name = args[0]
+    if name not in BENCHES:
+        print(f"mea bench: unknown benchmark {name!r} (choose from {', '.join(BENCHES)})", file=sys.stderr)
+        return 2
+    module_name, cls_name, text = BENCHES[name]
+    module = importlib.import_module(module_name)
+    cfg = tyro.cli(getattr(module, cls_name), prog=f"mea bench {name}", description=text, args=args[1:])
+    module.run(cfg)
+    return 0

@@ -1,0 +1,146 @@
+"""Process runtime shared by every service: graceful shutdown, parent-death watch, and the
+service context (bus, liveliness token, /metrics, heartbeats) wired around a service's loop."""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from proto.control import Heartbeat
+from proto.topics import STATUS
+from services.common import logs
+from services.common.bus.base import Bus
+from services.common.bus.zenoh_bus import ZenohBus
+from services.common.config import ServiceConfig
+from services.common.metrics import DEFAULT_PORTS, ServiceMetrics
+
+log = logging.getLogger(__name__)
+PR_SET_PDEATHSIG = 1
+
+
+class Shutdown:
+    """Set on SIGTERM/SIGINT (or by the owner); loops poll ``is_set`` or ``wait``."""
+
+    def __init__(self, install_signals: bool = True) -> None:
+        self._event = threading.Event()
+        self.reason = ""
+        if install_signals and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, self._on_signal)
+            signal.signal(signal.SIGINT, self._on_signal)
+
+    def _on_signal(self, signum: int, _frame: object) -> None:
+        self.set(signal.Signals(signum).name)
+
+    def set(self, reason: str = "requested") -> None:
+        if not self._event.is_set():
+            self.reason = reason
+            self._event.set()
+
+    def is_set(self) -> bool:
+        return self._event.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        return self._event.wait(timeout)
+
+
+def die_with_parent() -> None:
+    """Ask the kernel to SIGTERM this process when its parent dies (Linux), and watch getppid as
+    a fallback, so a killed launcher leaves no orphans."""
+    parent = os.getppid()
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != parent:
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
+            time.sleep(0.5)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+@dataclass
+class ServiceContext:
+    """Everything a service shell needs around its core loop. Use as a context manager."""
+
+    service: str
+    cfg: ServiceConfig
+    bus_factory: Callable[[ServiceConfig], Bus] = field(default=lambda c: ZenohBus(c.zenoh))
+    counters: Callable[[], dict[str, float]] = field(default=dict)
+    index: int = 0
+
+    def __post_init__(self) -> None:
+        self.instance = self.cfg.instance_id or f"{self.service}-{os.getpid()}"
+        self.shutdown = Shutdown()
+        self.policy_version = -1
+        self.state = "starting"
+        self.detail = ""
+        self.started_at = time.time()
+        self.metrics = ServiceMetrics(self.service, self.instance)
+        self.bus: Bus | None = None
+        self._token = None
+        self._hb_thread: threading.Thread | None = None
+
+    def __enter__(self) -> ServiceContext:
+        logs.setup(self.service, self.instance, self.cfg.log_format, self.cfg.log_level)
+        port = self.cfg.metrics_port
+        if port < 0:
+            port = DEFAULT_PORTS.get(self.service, 0) + (self.index if self.service == "actor" else 0)
+        try:
+            self.metrics_port = self.metrics.serve(self.cfg.metrics_addr, port)
+        except OSError as exc:
+            raise SystemExit(
+                f"{self.service}: cannot serve /metrics on {self.cfg.metrics_addr}:{port}: {exc}"
+            ) from None
+        self.bus = self.bus_factory(self.cfg)
+        self.metrics.watch_bus(self.bus)
+        self._token = self.bus.declare_alive(self.service, self.instance)
+        self._hb_thread = threading.Thread(target=self._heartbeats, name="heartbeat", daemon=True)
+        self._hb_thread.start()
+        log.info("started", extra={"metrics_port": self.metrics_port, "namespace": self.cfg.zenoh.namespace})
+        self.state = "running"
+        return self
+
+    def heartbeat(self) -> Heartbeat:
+        return Heartbeat(
+            service=self.service,
+            instance_id=self.instance,
+            pid=os.getpid(),
+            state=self.state,
+            started_at=self.started_at,
+            created_at=time.time(),
+            policy_version=self.policy_version,
+            counters={k: float(v) for k, v in self.counters().items()},
+            detail=self.detail[:512],
+        )
+
+    def _heartbeats(self) -> None:
+        while not self.shutdown.wait(self.cfg.heartbeat_seconds):
+            try:
+                self.metrics.policy_version.set(self.policy_version)
+                self.bus.publish(STATUS, self.heartbeat(), service=self.service, instance=self.instance)
+            except Exception:  # noqa: BLE001 - telemetry must never take the service down
+                log.exception("heartbeat failed")
+
+    def __exit__(self, *exc: object) -> None:
+        self.state = "stopping"
+        self.shutdown.set("exit")
+        if self._hb_thread is not None:
+            self._hb_thread.join(timeout=2.0)
+        try:
+            if self.bus is not None:
+                self.bus.publish(STATUS, self.heartbeat(), service=self.service, instance=self.instance)
+                self.bus.close()
+        finally:
+            self.metrics.close()
+            log.info("stopped", extra={"reason": self.shutdown.reason})

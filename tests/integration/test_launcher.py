@@ -1,0 +1,139 @@
+"""`mea run` as a user runs it: separate processes, live status, clean and forced shutdown."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
+
+pytestmark = pytest.mark.integration
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _launch(tmp_path: Path, port: int, *extra: str) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    cmd = [
+        sys.executable,
+        "-m",
+        "services.cli",
+        "run",
+        "--listen",
+        f"tcp/127.0.0.1:{port}",
+        "--metrics-port",
+        "0",
+        "--run-dir",
+        str(tmp_path / "run"),
+        "--extra-services",
+        "tests.helpers.dummy_service:main",
+        *extra,
+    ]
+    return subprocess.Popen(
+        cmd,
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie still answers kill(0); treat it as gone
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split()[2] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def _wait_for_service(port: int, timeout: float = 60.0) -> int:
+    """Wait for the dummy service's liveliness token and heartbeat; return its pid."""
+    from proto.topics import STATUS
+
+    bus = ZenohBus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
+    try:
+        watch = bus.watch_alive("test")
+        assert watch.wait_for(lambda alive: ("test", "extra-0") in alive, timeout), (
+            "service never became alive"
+        )
+        beats = bus.subscribe(STATUS, service="test")
+        hb = beats.recv(timeout=10.0)
+        assert hb is not None, "no heartbeat"
+        return hb.message.pid
+    finally:
+        bus.close()
+
+
+@pytest.mark.timeout(120)
+def test_sigterm_stops_every_process_within_seconds(tmp_path):
+    port = _port()
+    proc = _launch(tmp_path, port)
+    try:
+        child = _wait_for_service(port)
+        assert _pid_alive(child)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(timeout=15)
+        elapsed = time.monotonic() - t0
+        assert rc == 0, proc.stdout.read()
+        assert elapsed < 8.0, f"shutdown took {elapsed:.1f} s"
+        deadline = time.monotonic() + 5
+        while _pid_alive(child) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _pid_alive(child), "service process outlived the launcher"
+        assert (tmp_path / "run" / "config.json").exists()
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
+@pytest.mark.timeout(120)
+def test_sigkilled_launcher_leaves_no_orphans(tmp_path):
+    port = _port()
+    proc = _launch(tmp_path, port)
+    try:
+        child = _wait_for_service(port)
+        proc.kill()
+        proc.wait(timeout=10)
+        deadline = time.monotonic() + 10
+        while _pid_alive(child) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _pid_alive(child), "orphaned service survived a SIGKILLed launcher"
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
+@pytest.mark.timeout(120)
+def test_a_failed_service_is_reported_and_stops_the_stack(tmp_path):
+    port = _port()
+    proc = _launch(tmp_path, port)
+    try:
+        child = _wait_for_service(port)
+        os.kill(child, signal.SIGKILL)
+        rc = proc.wait(timeout=20)
+        out = proc.stdout.read()
+        assert rc == 1, out
+        assert "service exited" in out and "exitcode=-9" in out, out
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
