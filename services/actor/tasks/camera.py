@@ -1,0 +1,185 @@
+"""Fixed depth cameras with segmentation masks, fused into per-segment point clouds.
+
+Several views around the workspace are rendered (pybullet's tiny renderer, which skips the
+invisible arm), each depth pixel of a segment is back-projected to the world, the views are fused,
+voxel-downsampled (so denser views don't pull the centroid), and a fixed number of points is drawn
+per segment. Several views mean the gripper never hides an object during the approach.
+
+Also renders the baseline the paper compares against: the public Equi-RSAC observation, a
+top-down orthographic depth image centred on the gripper.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pybullet as pb
+
+WORKSPACE_CENTRE = (0.5, 0.0, 0.08)
+
+
+def _default_views() -> tuple[tuple[float, float, float], ...]:
+    """(azimuth deg, elevation deg, distance m) of each camera around the workspace centre."""
+    return (
+        (45.0, 50.0, 0.95),
+        (135.0, 50.0, 0.95),
+        (225.0, 50.0, 0.95),
+        (315.0, 50.0, 0.95),
+        (0.0, 89.0, 1.0),
+    )
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    """Camera rig and point sampling."""
+
+    image_size: int = 96
+    """Pixels per side of each view."""
+    fov_deg: float = 42.0
+    """Vertical field of view of each view."""
+    views: tuple[tuple[float, float, float], ...] = field(default_factory=_default_views)
+    """(azimuth deg, elevation deg, distance m) of each camera, looking at the workspace centre."""
+    points_per_segment: int = 256
+    """Fixed number of points drawn per segment (with replacement when fewer are seen)."""
+    downsample_voxel: float = 0.004
+    """Voxel edge (m) of the fusion downsampling: one point per occupied voxel."""
+    near: float = 0.2
+    """Near clipping plane (m)."""
+    far: float = 2.5
+    """Far clipping plane (m)."""
+
+
+@dataclass
+class _View:
+    view: list[float]
+    proj: list[float]
+    inv_vp: np.ndarray  # 4x4 inverse of proj @ view (column-vector convention)
+
+
+class Cameras:
+    """Renders the rig and returns world-frame points per segment."""
+
+    def __init__(self, client: int, settings: CameraSettings = CameraSettings()) -> None:
+        self.client = client
+        self.s = settings
+        proj = pb.computeProjectionMatrixFOV(settings.fov_deg, 1.0, settings.near, settings.far)
+        self.views: list[_View] = []
+        cx, cy, cz = WORKSPACE_CENTRE
+        for az, el, dist in settings.views:
+            a, e = math.radians(az), math.radians(el)
+            eye = (
+                cx + dist * math.cos(e) * math.cos(a),
+                cy + dist * math.cos(e) * math.sin(a),
+                cz + dist * math.sin(e),
+            )
+            up = (0.0, 0.0, 1.0) if el < 80 else (-1.0, 0.0, 0.0)
+            view = pb.computeViewMatrix(eye, WORKSPACE_CENTRE, up)
+            vp = np.array(proj).reshape(4, 4).T @ np.array(view).reshape(4, 4).T
+            self.views.append(_View(view, proj, np.linalg.inv(vp)))
+        n = settings.image_size
+        # pixel centres in normalised device coordinates (row 0 = top of the image)
+        xs = (np.arange(n) + 0.5) / n * 2 - 1
+        self._ndc_x = np.tile(xs, n)
+        self._ndc_y = np.repeat(-xs, n)
+
+    def render_segments(self, segments: dict[str, list[tuple[int, int | None]]]) -> dict[str, np.ndarray]:
+        """World points seen of each segment, fused over views and voxel-downsampled.
+
+        ``segments`` maps a name to (body id, link index or None for any link) pairs."""
+        n = self.s.image_size
+        code_to_name: dict[int, str] = {}
+        body_to_name: dict[int, str] = {}
+        for name, parts in segments.items():
+            for body, link in parts:
+                if link is None:
+                    body_to_name[body] = name
+                else:
+                    code_to_name[body + ((link + 1) << 24)] = name
+        found: dict[str, list[np.ndarray]] = {name: [] for name in segments}
+        for v in self.views:
+            _, _, _, depth, seg = pb.getCameraImage(
+                n, n, v.view, v.proj, renderer=pb.ER_TINY_RENDERER,
+                flags=pb.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX, physicsClientId=self.client,
+            )  # fmt: skip
+            seg = np.asarray(seg).reshape(-1)
+            depth = np.asarray(depth, dtype=np.float64).reshape(-1)
+            hit = seg >= 0
+            bodies = np.where(hit, seg & ((1 << 24) - 1), -1)
+            for name in segments:
+                mask = np.zeros(seg.shape, bool)
+                for code, nm in code_to_name.items():
+                    if nm == name:
+                        mask |= seg == code
+                for body, nm in body_to_name.items():
+                    if nm == name:
+                        mask |= bodies == body
+                if mask.any():
+                    found[name].append(self._unproject(v, mask, depth))
+        return {name: _downsample(np.concatenate(pts) if pts else np.zeros((0, 3)), self.s.downsample_voxel)
+                for name, pts in found.items()}  # fmt: skip
+
+    def _unproject(self, v: _View, mask: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        z_ndc = depth[mask] * 2 - 1
+        clip = np.stack([self._ndc_x[mask], self._ndc_y[mask], z_ndc, np.ones_like(z_ndc)])
+        world = v.inv_vp @ clip
+        return (world[:3] / world[3]).T
+
+
+def _downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One point (the mean) per occupied voxel, in a deterministic order."""
+    if len(points) == 0:
+        return points.astype(np.float64)
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inverse.reshape(-1), points)
+    return sums / counts[:, None]
+
+
+def sample_fixed(points: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, int]:
+    """Exactly ``count`` points: a random subset, or all of them plus repeats when fewer.
+
+    Returns (points (count, 3), number of distinct points available). An unseen segment gives
+    zeros and 0."""
+    n = len(points)
+    if n == 0:
+        return np.zeros((count, 3)), 0
+    if n >= count:
+        idx = rng.choice(n, size=count, replace=False)
+    else:
+        idx = np.concatenate([np.arange(n), rng.integers(0, n, size=count - n)])
+    return points[idx], n
+
+
+def orthographic(half_width: float, near: float, far: float) -> list[float]:
+    """Column-major OpenGL orthographic projection (pybullet accepts any 4x4 matrix)."""
+    m = np.array(
+        [
+            [1.0 / half_width, 0, 0, 0],
+            [0, 1.0 / half_width, 0, 0],
+            [0, 0, -2.0 / (far - near), -(far + near) / (far - near)],
+            [0, 0, 0, 1.0],
+        ]
+    )
+    return m.T.reshape(-1).tolist()
+
+
+def render_gripper_depth(
+    client: int, centre: np.ndarray, size: int = 84, span: float = 0.4, height: float = 0.06, far: float = 0.5
+) -> np.ndarray:
+    """Baseline observation of the public Equi-RSAC tasks: top-down orthographic depth image
+    centred on the gripper (camera at the gripper + ``height``, up-vector -x, ``span`` m wide).
+
+    Rows follow +x and columns +y (the public code's pairing with up-vector [-1, 0, 0]).
+    Values are distances below the camera (m); nothing within ``far`` reads ``far``."""
+    eye = (float(centre[0]), float(centre[1]), float(centre[2]) + height)
+    view = pb.computeViewMatrix(eye, (eye[0], eye[1], eye[2] - 1.0), (-1.0, 0.0, 0.0))
+    proj = orthographic(span / 2, 0.0, far)
+    _, _, _, depth, _ = pb.getCameraImage(
+        size, size, view, proj, renderer=pb.ER_TINY_RENDERER, flags=pb.ER_NO_SEGMENTATION_MASK,
+        physicsClientId=client,
+    )  # fmt: skip
+    # orthographic depth buffer is linear: distance = near + d * (far - near)
+    return (np.asarray(depth, dtype=np.float32).reshape(size, size) * far).astype(np.float32)

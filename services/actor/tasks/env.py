@@ -1,0 +1,211 @@
+"""The manipulation POMDP shared by every task (paper Sec. IV-C).
+
+Observation: point-cloud segments of the gripper and of each task object, in the gripper-centric
+frame (origin at the centroid of the gripper's points, world orientation), plus the jaw opening.
+Action: (jaw, dx, dy, dz, dtheta) in [-1, 1]^5, Delta_xyz = 0.05 m, Delta_theta = pi/8.
+Reward: 1 on success (which terminates), else 0; the time limit truncates.
+Privileged state (gripper pose, object poses, contacts) is recorded beside the observation for
+MEA and the audit; a policy never sees it.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+import pybullet as pb
+import pybullet_data
+
+from services.actor.tasks.camera import Cameras, CameraSettings, render_gripper_depth, sample_fixed
+from services.actor.tasks.robot import GRIPPER_LINKS, WORKSPACE, ControlSettings, Robot
+
+SegmentParts = list[tuple[int, int | None]]  # (body id, link index or None for the whole body)
+
+
+@dataclass(frozen=True)
+class EnvSettings:
+    """Simulation, control and observation settings shared by every task."""
+
+    max_steps: int = 50
+    """Time limit (steps); reaching it truncates the episode."""
+    initial_tip_height: float = 0.2
+    """Finger-tip height (m) at reset: fixed, so MEA knows the initial gripper height."""
+    depth_image: bool = False
+    """Also render the baseline observation (public Equi-RSAC top-down depth image)."""
+    depth_image_size: int = 84
+    """Pixels per side of the baseline depth image."""
+    camera: CameraSettings = field(default_factory=CameraSettings)
+    """Camera rig and point sampling."""
+    control: ControlSettings = field(default_factory=ControlSettings)
+    """Arm control."""
+
+
+@dataclass
+class Observation:
+    """One observation plus the privileged state recorded beside it."""
+
+    points: np.ndarray  # (S, P, 3) float32, gripper-centric
+    point_counts: np.ndarray  # (S,) int32
+    jaw: float  # measured opening, 0 closed .. 1 open
+    gripper_pose: np.ndarray  # (4,) float32 pivot x, y, z (world) and yaw: privileged
+    object_poses: np.ndarray  # (M, 7) float32 world pose per object: privileged
+    contacts: np.ndarray  # (M,) bool gripper touches object i: privileged
+    depth_image: np.ndarray | None = None  # (N, N) float32 baseline image, when enabled
+
+
+class Task(ABC):
+    """A task: its objects, how they are placed, when it succeeds, and its scripted experts."""
+
+    name: str = ""
+    object_names: tuple[str, ...] = ("object_0", "object_1")
+
+    @abstractmethod
+    def build(self, client: int) -> None:
+        """Create the task's bodies once (they are re-posed, never re-created, at reset)."""
+
+    @abstractmethod
+    def reset(self, rng: np.random.Generator) -> None:
+        """Place objects and choose which one is movable (hidden from the policy)."""
+
+    @abstractmethod
+    def object_segments(self) -> dict[str, SegmentParts]:
+        """Segment name -> bodies/links whose points form it (same order as object_names)."""
+
+    @abstractmethod
+    def object_poses(self) -> np.ndarray:
+        """(M, 7) world poses (x, y, z, qx, qy, qz, qw) of the objects, in object_names order."""
+
+    @abstractmethod
+    def success(self, env: ManipulationEnv) -> bool:
+        """Task goal reached in the current state."""
+
+    @abstractmethod
+    def expert(self, env: ManipulationEnv, style: str, rng: np.random.Generator):
+        """A scripted expert: an object with ``act() -> action`` for ``style`` in EXPERT_STYLES."""
+
+    def initial_gripper(self, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+        """Initial pivot x, y and yaw (the height is fixed by EnvSettings)."""
+        xy = rng.uniform([0.35, -0.15], [0.65, 0.15])
+        return xy, float(rng.uniform(-math.pi / 2, math.pi / 2))
+
+
+EXPERT_STYLES = ("probe", "direct")  # probe: touch the fixed object first; direct: go to the movable one
+
+
+class ManipulationEnv:
+    """pybullet DIRECT simulation of one task; ``reset(seed)`` then ``step(action)``."""
+
+    def __init__(self, task: Task, settings: EnvSettings = EnvSettings()) -> None:
+        self.task = task
+        self.settings = settings
+        self.client = pb.connect(pb.DIRECT)
+        c = self.client
+        pb.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=c)
+        pb.setGravity(0, 0, -9.8, physicsClientId=c)
+        pb.setPhysicsEngineParameter(
+            fixedTimeStep=1.0 / settings.control.sim_hz, numSolverIterations=settings.control.solver_iterations,
+            deterministicOverlappingPairs=1, physicsClientId=c,
+        )  # fmt: skip
+        self.floor = pb.loadURDF("plane.urdf", physicsClientId=c)
+        pb.changeVisualShape(self.floor, -1, rgbaColor=(1, 1, 1, 0), physicsClientId=c)  # not observed
+        self.robot = Robot(c, settings.control)
+        self.cameras = Cameras(c, settings.camera)
+        self.segment_names = ("gripper", *task.object_names)
+        self._calibrate()
+        task.build(c)
+        self._saved = pb.saveState(physicsClientId=c)
+        self.seed = 0
+        self.t = 0
+        self.substeps = 0
+
+    # --- geometry -----------------------------------------------------------------------------
+    def _gripper_parts(self) -> SegmentParts:
+        return [(self.robot.body, link) for link in GRIPPER_LINKS]
+
+    def _calibrate(self) -> None:
+        """Find the gripper's point centroid in the flange frame (the controller's pivot)."""
+        r = self.robot
+        r.reset(np.array([0.5, 0.0, 0.3]), 0.0, jaw=1.0)
+        pts = self.cameras.render_segments({"gripper": self._gripper_parts()})["gripper"]
+        fpos, fquat = r.flange_pose()
+        m = np.array(pb.getMatrixFromQuaternion(fquat)).reshape(3, 3)
+        r.calibrate(m.T @ (pts.mean(axis=0) - fpos))
+
+    def step_physics(self) -> None:
+        pb.stepSimulation(physicsClientId=self.client)
+        self.substeps += 1
+
+    # --- POMDP --------------------------------------------------------------------------------
+    def reset(self, seed: int) -> Observation:
+        pb.restoreState(self._saved, physicsClientId=self.client)
+        self.seed, self.t = int(seed), 0
+        rng = np.random.default_rng(self.seed)
+        self.task.reset(rng)
+        xy, yaw = self.task.initial_gripper(rng)
+        z = self.settings.initial_tip_height + self.robot.tip_drop
+        self.robot.reset(np.array([xy[0], xy[1], z]), yaw, jaw=1.0)
+        for _ in range(10):  # let objects rest on the floor
+            self.step_physics()
+        return self.observe()
+
+    def step(self, action: np.ndarray) -> tuple[Observation, float, bool, bool, dict]:
+        _, _, clipped = self.robot.command(action)
+        self.robot.settle(self.step_physics)
+        self.t += 1
+        obs = self.observe()
+        success = bool(self.task.success(self))
+        truncated = not success and self.t >= self.settings.max_steps
+        return obs, float(success), success, truncated, {"success": success, "clipped": clipped}
+
+    def observe(self) -> Observation:
+        s = self.settings
+        segments = {"gripper": self._gripper_parts(), **self.task.object_segments()}
+        world = self.cameras.render_segments(segments)
+        pivot, yaw = self.robot.pivot()
+        grip = world["gripper"]
+        origin = grip.mean(axis=0) if len(grip) else pivot
+        rng = np.random.default_rng([self.seed, self.t, 1])  # sampling depends only on (seed, step)
+        P = s.camera.points_per_segment
+        points = np.zeros((len(self.segment_names), P, 3), np.float32)
+        counts = np.zeros(len(self.segment_names), np.int32)
+        for i, name in enumerate(self.segment_names):
+            pts, n = sample_fixed(world[name] - origin if len(world[name]) else world[name], P, rng)
+            points[i], counts[i] = pts, n
+        image = None
+        if s.depth_image:
+            image = render_gripper_depth(self.client, pivot, size=s.depth_image_size)
+        return Observation(
+            points=points,
+            point_counts=counts,
+            jaw=self.robot.jaw_opening(),
+            gripper_pose=np.array([*pivot, yaw], np.float32),
+            object_poses=self.task.object_poses().astype(np.float32),
+            contacts=self.contacts(),
+            depth_image=image,
+        )
+
+    def contacts(self) -> np.ndarray:
+        out = np.zeros(len(self.task.object_names), bool)
+        for i, parts in enumerate(self.task.object_segments().values()):
+            for body, _ in parts:
+                pts = pb.getContactPoints(bodyA=self.robot.body, bodyB=body, physicsClientId=self.client)
+                if any(p[3] in GRIPPER_LINKS for p in pts):
+                    out[i] = True
+        return out
+
+    def gripper_touches(self, body: int, links: tuple[int, ...] = GRIPPER_LINKS) -> set[int]:
+        """Gripper links touching ``body``."""
+        pts = pb.getContactPoints(bodyA=self.robot.body, bodyB=body, physicsClientId=self.client)
+        return {p[3] for p in pts if p[3] in links}
+
+    def close(self) -> None:
+        if self.client is not None and pb.isConnected(self.client):
+            pb.disconnect(self.client)
+        self.client = None
+
+
+def workspace_xy_margin(margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """x, y bounds shrunk by ``margin`` (object placement)."""
+    return WORKSPACE[:2, 0] + margin, WORKSPACE[:2, 1] - margin

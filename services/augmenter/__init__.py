@@ -1,0 +1,1 @@
+"""Augmenter service: multi-group equivariant augmentation of episodes (MEA)."""

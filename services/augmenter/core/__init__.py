@@ -1,0 +1,1 @@
+"""Pure augmentation math (numpy only): projection, group actions, relabelling."""
