@@ -49,6 +49,7 @@ from mcap.records import Message as McapMessage
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
+import proto  # noqa: F401 - registers every message type for decoding
 from proto.codec import DEFAULT_LIMITS, Limits, Message, ProtocolError, decode
 from proto.jsonschema import json_schema_text
 

@@ -35,8 +35,8 @@ def _default_views() -> tuple[tuple[float, float, float], ...]:
 class CameraSettings:
     """Camera rig and point sampling."""
 
-    image_size: int = 96
-    """Pixels per side of each view."""
+    image_size: int = 128
+    """Pixels per side of each view (128 keeps the observed gripper yaw within ~1 degree)."""
     fov_deg: float = 42.0
     """Vertical field of view of each view."""
     views: tuple[tuple[float, float, float], ...] = field(default_factory=_default_views)
@@ -153,33 +153,53 @@ def sample_fixed(points: np.ndarray, count: int, rng: np.random.Generator) -> tu
     return points[idx], n
 
 
-def orthographic(half_width: float, near: float, far: float) -> list[float]:
-    """Column-major OpenGL orthographic projection (pybullet accepts any 4x4 matrix)."""
-    m = np.array(
-        [
-            [1.0 / half_width, 0, 0, 0],
-            [0, 1.0 / half_width, 0, 0],
-            [0, 0, -2.0 / (far - near), -(far + near) / (far - near)],
-            [0, 0, 0, 1.0],
-        ]
-    )
-    return m.T.reshape(-1).tolist()
+FINGER_THICKNESS = 0.012  # m, painted finger size across the closing axis ...
+FINGER_WIDTH = 0.025  # ... and along the other horizontal axis
+
+
+def paint_fingers(image: np.ndarray, centre: np.ndarray, grip: np.ndarray, yaw: float, gap: float,
+                  span: float) -> np.ndarray:
+    """Paint the two fingers as 0-depth rectangles (the public tasks' convention): centred
+    ``gap/2`` either side of the grip point along the closing axis (heading ``yaw``)."""
+    n = image.shape[0]
+    px = span / n
+    coords = (np.arange(n) + 0.5 - n / 2) * px
+    gx = centre[0] + coords[:, None]  # row -> +x
+    gy = centre[1] + coords[None, :]  # column -> +y
+    u = np.array([math.cos(yaw), math.sin(yaw)])
+    out = image.copy()
+    for sign in (1.0, -1.0):
+        fc = grip[:2] + sign * (gap / 2 + FINGER_THICKNESS / 2) * u
+        du = (gx - fc[0]) * u[0] + (gy - fc[1]) * u[1]
+        dv = -(gx - fc[0]) * u[1] + (gy - fc[1]) * u[0]
+        out[(np.abs(du) <= FINGER_THICKNESS / 2) & (np.abs(dv) <= FINGER_WIDTH / 2)] = 0.0
+    return out
+
+
+TELEPHOTO_DISTANCE = 5.0  # m: the baseline camera looks from far above through a narrow lens
 
 
 def render_gripper_depth(
     client: int, centre: np.ndarray, size: int = 84, span: float = 0.4, height: float = 0.06, far: float = 0.5
 ) -> np.ndarray:
-    """Baseline observation of the public Equi-RSAC tasks: top-down orthographic depth image
-    centred on the gripper (camera at the gripper + ``height``, up-vector -x, ``span`` m wide).
+    """Baseline observation of the public Equi-RSAC tasks: top-down depth image centred on the
+    gripper, ``span`` m wide at ``height`` above the gripper, values = depth below that plane (m),
+    clipped to ``far``; up-vector -x, so rows follow +x and columns +y (the public pairing).
 
-    Rows follow +x and columns +y (the public code's pairing with up-vector [-1, 0, 0]).
-    Values are distances below the camera (m); nothing within ``far`` reads ``far``."""
-    eye = (float(centre[0]), float(centre[1]), float(centre[2]) + height)
-    view = pb.computeViewMatrix(eye, (eye[0], eye[1], eye[2] - 1.0), (-1.0, 0.0, 0.0))
-    proj = orthographic(span / 2, 0.0, far)
+    pybullet's tiny renderer has no usable orthographic mode, so the camera sits
+    TELEPHOTO_DISTANCE above that plane with a narrow field of view: nearly orthographic (scale
+    changes by height/distance, under 9% over the 0.44 m between the gripper and the floor).
+    The caller hides the gripper's own links (they would block the view) and paints its fingers."""
+    plane = float(centre[2]) + height
+    eye = (float(centre[0]), float(centre[1]), plane + TELEPHOTO_DISTANCE)
+    view = pb.computeViewMatrix(eye, (eye[0], eye[1], plane), (-1.0, 0.0, 0.0))
+    fov = math.degrees(2 * math.atan(span / 2 / TELEPHOTO_DISTANCE))
+    near, farp = TELEPHOTO_DISTANCE - 0.05, TELEPHOTO_DISTANCE + far
+    proj = pb.computeProjectionMatrixFOV(fov, 1.0, near, farp)
     _, _, _, depth, _ = pb.getCameraImage(
         size, size, view, proj, renderer=pb.ER_TINY_RENDERER, flags=pb.ER_NO_SEGMENTATION_MASK,
         physicsClientId=client,
     )  # fmt: skip
-    # orthographic depth buffer is linear: distance = near + d * (far - near)
-    return (np.asarray(depth, dtype=np.float32).reshape(size, size) * far).astype(np.float32)
+    d = np.asarray(depth, dtype=np.float64).reshape(size, size)
+    z = farp * near / (farp - (farp - near) * d)  # OpenGL depth buffer -> distance along the axis
+    return np.clip(z - TELEPHOTO_DISTANCE, 0.0, far).astype(np.float32)

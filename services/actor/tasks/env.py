@@ -2,6 +2,8 @@
 
 Observation: point-cloud segments of the gripper and of each task object, in the gripper-centric
 frame (origin at the centroid of the gripper's points, world orientation), plus the jaw opening.
+The centroid is a fixed point of the gripper body: it is measured from the fused camera views once
+(open jaw, free space) and then follows the gripper by forward kinematics.
 Action: (jaw, dx, dy, dz, dtheta) in [-1, 1]^5, Delta_xyz = 0.05 m, Delta_theta = pi/8.
 Reward: 1 on success (which terminates), else 0; the time limit truncates.
 Privileged state (gripper pose, object poses, contacts) is recorded beside the observation for
@@ -18,7 +20,7 @@ import numpy as np
 import pybullet as pb
 import pybullet_data
 
-from services.actor.tasks.camera import Cameras, CameraSettings, render_gripper_depth, sample_fixed
+from services.actor.tasks.camera import Cameras, CameraSettings, paint_fingers, render_gripper_depth, sample_fixed
 from services.actor.tasks.robot import GRIPPER_LINKS, WORKSPACE, ControlSettings, Robot
 
 SegmentParts = list[tuple[int, int | None]]  # (body id, link index or None for the whole body)
@@ -84,6 +86,12 @@ class Task(ABC):
     @abstractmethod
     def expert(self, env: ManipulationEnv, style: str, rng: np.random.Generator):
         """A scripted expert: an object with ``act() -> action`` for ``style`` in EXPERT_STYLES."""
+
+    def fixed_index(self) -> int:
+        """Slot (index into object_names) of the immovable object: privileged, for checks only.
+
+        Default: tasks keep ``self.order`` (bodies by slot) and ``self.fixed`` (the immovable body)."""
+        return self.order.index(self.fixed)
 
     def initial_gripper(self, rng: np.random.Generator) -> tuple[np.ndarray, float]:
         """Initial pivot x, y and yaw (the height is fixed by EnvSettings)."""
@@ -163,9 +171,11 @@ class ManipulationEnv:
         s = self.settings
         segments = {"gripper": self._gripper_parts(), **self.task.object_segments()}
         world = self.cameras.render_segments(segments)
+        # The frame origin is the centroid of the gripper's points, measured once in free space at
+        # calibration and carried by forward kinematics: per-frame centroids jitter by millimetres
+        # as the fixed cameras see different sides of the moving gripper.
         pivot, yaw = self.robot.pivot()
-        grip = world["gripper"]
-        origin = grip.mean(axis=0) if len(grip) else pivot
+        origin = pivot
         rng = np.random.default_rng([self.seed, self.t, 1])  # sampling depends only on (seed, step)
         P = s.camera.points_per_segment
         points = np.zeros((len(self.segment_names), P, 3), np.float32)
@@ -173,9 +183,7 @@ class ManipulationEnv:
         for i, name in enumerate(self.segment_names):
             pts, n = sample_fixed(world[name] - origin if len(world[name]) else world[name], P, rng)
             points[i], counts[i] = pts, n
-        image = None
-        if s.depth_image:
-            image = render_gripper_depth(self.client, pivot, size=s.depth_image_size)
+        image = self._baseline_image(pivot, yaw) if s.depth_image else None
         return Observation(
             points=points,
             point_counts=counts,
@@ -185,6 +193,18 @@ class ManipulationEnv:
             contacts=self.contacts(),
             depth_image=image,
         )
+
+    def _baseline_image(self, pivot: np.ndarray, yaw: float) -> np.ndarray:
+        """The public Equi-RSAC observation: gripper-centred orthographic depth, fingers painted."""
+        body, c = self.robot.body, self.client
+        for link in GRIPPER_LINKS:  # the camera sits inside the gripper: hide it, paint the fingers
+            pb.changeVisualShape(body, link, rgbaColor=(1, 1, 1, 0), physicsClientId=c)
+        try:
+            image = render_gripper_depth(c, pivot, size=self.settings.depth_image_size)
+        finally:
+            for link in GRIPPER_LINKS:
+                pb.changeVisualShape(body, link, rgbaColor=(0.6, 0.6, 0.6, 1), physicsClientId=c)
+        return paint_fingers(image, pivot, self.robot.tcp(), yaw, self.robot.pad_gap(), 0.4)
 
     def contacts(self) -> np.ndarray:
         out = np.zeros(len(self.task.object_names), bool)

@@ -125,6 +125,12 @@ class Robot:
         m = np.array(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
         return pos + m @ self.grip_offset
 
+    def pad_gap(self) -> float:
+        """Distance between the finger-tip pads (m)."""
+        near = pb.getClosestPoints(self.body, self.body, 0.3, linkIndexA=TIP_JOINTS[0], linkIndexB=TIP_JOINTS[1],
+                                   physicsClientId=self.client)  # fmt: skip
+        return max(0.0, min(p[8] for p in near)) if near else 0.0
+
     def finger_angle(self) -> float:
         return pb.getJointState(self.body, FINGER_JOINTS[1], physicsClientId=self.client)[0]
 

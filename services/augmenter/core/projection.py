@@ -88,7 +88,7 @@ class ProjectionSpec:
     """v: voxel edge (m); 84 px cover 0.4 m like the reference Equi-RSAC camera."""
     z_top: float = 0.1
     """Height (m) above the gripper origin of the grid's top plane (the virtual camera plane)."""
-    depth: float = 0.4
+    depth: float = 0.6
     """Grid depth (m) below ``z_top``: points whose depth ``z_top - z`` is outside ``[0, depth)`` are ignored."""
 
     def __post_init__(self) -> None:
@@ -279,7 +279,8 @@ def quantize_depth(depth: np.ndarray, spec: ProjectionSpec = DEFAULT_SPEC) -> np
 
     ``s = spec.quant_step = (depth + v) / 255``. For every d in ``[s/2, depth + v]`` (which holds all
     projected values, since they are >= v/2 > s/2) ``|dequantize_depth(q) - d| <= s / 2`` (~0.8 mm
-    with the default spec). Since ``s < v`` (``depth < 254 v``, checked by ProjectionSpec), the depth
+    with the default spec), plus float32 rounding of the values (< 1e-7 m). With the default spec
+    every level (k + 0.5) v = (3 k + 1.5) s is a rounding tie, so the bound is attained. Since ``s < v`` (``depth < 254 v``, checked by ProjectionSpec), the depth
     levels ``(k + 0.5) v``, one voxel apart, get distinct codes >= 1.
     """
     d = np.asarray(depth, dtype=np.float64)

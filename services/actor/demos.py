@@ -1,0 +1,80 @@
+"""`mea demos`: record scripted demonstrations of a task to an MCAP file.
+
+Styles alternate (probe: touch the fixed object first; direct: go to the movable one), and only
+successful episodes are kept, as in Equi-RSAC. The file has one channel per message type with
+its JSON Schema embedded, plus the resolved config and the seeds as metadata.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from services.actor.main import Actor, ActorConfig
+from services.common import config, logs
+from services.common.mcap_io import McapRecorder
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class DemosConfig:
+    """Record scripted demonstrations to MCAP."""
+
+    task: str = "block_pull"
+    """Task: block_pull, block_pick or drawer_open."""
+    n: int = 2
+    """Successful demonstrations to record."""
+    out: Path = Path("demos.mcap")
+    """Output file (written to OUT.tmp, renamed when complete)."""
+    style: str = "alternate"
+    """alternate, probe or direct."""
+    seed_base: int = 0
+    """First seed."""
+    max_attempts: int = 0
+    """Give up after this many expert attempts (0: 4 per requested demo)."""
+    depth_image: bool = False
+    """Also record the baseline depth image."""
+    overwrite: bool = False
+    """Replace an existing output file."""
+
+
+PRESETS = {"default": DemosConfig()}
+
+
+def record(cfg: DemosConfig) -> dict:
+    actor_cfg = ActorConfig(task=cfg.task, policy="expert", expert_style=cfg.style, seed_base=cfg.seed_base,
+                            depth_image=cfg.depth_image)  # fmt: skip
+    actor = Actor(actor_cfg, "demos")
+    attempts_cap = cfg.max_attempts or 4 * cfg.n
+    kept, attempts, seeds = 0, 0, []
+    meta = {"task": cfg.task, "kind": "demonstrations", "style": cfg.style}
+    with McapRecorder(cfg.out, metadata=meta, overwrite=cfg.overwrite) as rec:
+        rec.write_config("demos", json.dumps(config.to_jsonable(cfg)))
+        while kept < cfg.n and attempts < attempts_cap:
+            b = actor.expert_episode(kept)
+            attempts += 1
+            if not b.success:
+                log.info("expert failed; not kept", extra={"seed": b.meta["seed"], "kind": b.meta["policy_kind"]})
+                continue
+            rec.write(b.finish(actor.episode_id(b)))
+            seeds.append(b.meta["seed"])
+            kept += 1
+        rec.add_metadata("seeds", {"seeds": ",".join(map(str, seeds)), "attempts": str(attempts)})
+    actor.env.close()
+    return {"kept": kept, "attempts": attempts, "out": str(cfg.out), "seeds": seeds}
+
+
+def main(argv: Sequence[str]) -> int:
+    cfg = config.parse(DemosConfig, PRESETS, argv, "mea demos", DemosConfig.__doc__ or "")
+    logs.setup("demos", "demos", "text", "INFO")
+    result = record(cfg)
+    print(json.dumps(result))
+    if result["kept"] < cfg.n:
+        print(f"mea demos: only {result['kept']} of {cfg.n} demonstrations succeeded", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,177 @@
+"""Block Pull: two identical flat blocks, one fixed; drag the movable one until the two touch.
+
+Both blocks share an x and lie apart along y; which one is fixed is drawn per episode and is
+invisible (same shape, size and colour). The scripted expert closes the jaw into a paddle, lowers it
+on the far side of a block (the side away from the other block) with the jaw's closing axis across
+the line between the blocks, and drags the block along that line. The ``probe`` style first tries
+this on the fixed block (and so touches it), then lifts and does the same on the movable one.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pybullet as pb
+
+from services.actor.tasks.env import ManipulationEnv, Task
+from services.actor.tasks.experts import Follower
+from services.actor.tasks.robot import WORKSPACE
+
+HALF = np.array([0.05, 0.05, 0.025])  # block half extents (m)
+MOVABLE_MASS = 0.5  # kg
+MIN_SEPARATION = 3.4 * HALF[0]  # centre distance at reset (m)
+BLOCK_X = (0.4, 0.6)  # range of the blocks' shared x (m)
+TOUCH_DISTANCE = 0.002  # blocks closer than this count as touching (m)
+
+# Expert geometry (closed jaw, gripper yaw 0). The closed tips form a paddle 6.6 cm wide along x
+# and 2.5 cm thick along y, centred on the tool centre; at yaw 0 the pivot sits 13.3 mm on the
+# -y side of the tool centre, so the tool centre reaches y in [-0.187, 0.213] (placement below
+# keeps every paddle goal inside that band).
+PADDLE_HALF = 0.0125  # half thickness (y) of the closed-tip paddle (m)
+CLEARANCE = 0.008  # gap between paddle and block when lowering behind it (m)
+TCP_Y_RANGE = (WORKSPACE[1, 0] + 0.0133 + 0.002, WORKSPACE[1, 1] + 0.0133 - 0.002)
+PUSH_YAW = 0.0  # jaw closing axis along x: across the pulling line (the y axis)
+
+
+def footprint(yaw: float) -> float:
+    """Half extent along y of a block turned by ``yaw`` (its x extent is the same)."""
+    return float(HALF[0] * (abs(math.cos(yaw)) + abs(math.sin(yaw))))
+
+
+def standoff(yaw: float) -> float:
+    """Tool-centre distance (y) from a block's centre at which the paddle is lowered."""
+    return footprint(yaw) + PADDLE_HALF + CLEARANCE
+
+
+def block_yaw(quat) -> float:
+    return float(pb.getEulerFromQuaternion(quat)[2])
+
+
+class BlockPull(Task):
+    name = "block_pull"
+
+    def build(self, client: int) -> None:
+        self.client = client
+        col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=HALF.tolist(), physicsClientId=client)
+        vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=HALF.tolist(), rgbaColor=(0.9, 0.5, 0.2, 1),
+                                   physicsClientId=client)  # fmt: skip
+        # one static (mass 0) and one movable body; which slot each takes is random per episode
+        self.fixed = pb.createMultiBody(0.0, col, vis, basePosition=(0.5, 0.1, HALF[2]), physicsClientId=client)
+        self.movable = pb.createMultiBody(MOVABLE_MASS, col, vis, basePosition=(0.5, -0.1, HALF[2]),
+                                          physicsClientId=client)  # fmt: skip
+        for b in (self.fixed, self.movable):
+            pb.changeDynamics(b, -1, lateralFriction=0.5, spinningFriction=0.001, physicsClientId=client)
+        self.order = [self.fixed, self.movable]
+
+    @staticmethod
+    def sample_layout(rng: np.random.Generator) -> tuple[float, np.ndarray, np.ndarray]:
+        """Shared x, the two y's and yaws: centres more than MIN_SEPARATION apart, each block
+        inside the workspace, and the paddle goal beyond each block (away from the other)
+        reachable, so the probe can visit either."""
+        x = float(rng.uniform(*BLOCK_X))
+        while True:
+            yaws = rng.uniform(-math.pi / 4, math.pi / 4, size=2)
+            ys = rng.uniform(TCP_Y_RANGE[0], TCP_Y_RANGE[1], size=2)
+            if abs(ys[0] - ys[1]) <= MIN_SEPARATION:
+                continue
+            hi, lo = (0, 1) if ys[0] > ys[1] else (1, 0)
+            if ys[hi] + standoff(yaws[hi]) > TCP_Y_RANGE[1] or ys[lo] - standoff(yaws[lo]) < TCP_Y_RANGE[0]:
+                continue
+            inside = [abs(y) + footprint(w) <= WORKSPACE[1, 1] - 0.005 for y, w in zip(ys, yaws, strict=True)]
+            if all(inside):
+                return x, ys, yaws
+
+    def reset(self, rng: np.random.Generator) -> None:
+        x, ys, yaws = self.sample_layout(rng)
+        self.order = [self.fixed, self.movable] if rng.integers(2) == 0 else [self.movable, self.fixed]
+        for body, y, yaw in zip(self.order, ys, yaws, strict=True):
+            pb.resetBasePositionAndOrientation(
+                body, (x, float(y), HALF[2]), pb.getQuaternionFromEuler((0, 0, float(yaw))),
+                physicsClientId=self.client,
+            )  # fmt: skip
+            pb.resetBaseVelocity(body, (0, 0, 0), (0, 0, 0), physicsClientId=self.client)
+
+    def object_segments(self):
+        return {name: [(body, None)] for name, body in zip(self.object_names, self.order, strict=True)}
+
+    def object_poses(self) -> np.ndarray:
+        out = []
+        for body in self.order:
+            pos, quat = pb.getBasePositionAndOrientation(body, physicsClientId=self.client)
+            out.append([*pos, *quat])
+        return np.array(out)
+
+    def touching(self) -> bool:
+        c = self.client
+        if pb.getContactPoints(self.fixed, self.movable, physicsClientId=c):
+            return True
+        return bool(pb.getClosestPoints(self.fixed, self.movable, TOUCH_DISTANCE, physicsClientId=c))
+
+    def success(self, env: ManipulationEnv) -> bool:
+        return self.touching()
+
+    def expert(self, env: ManipulationEnv, style: str, rng: np.random.Generator):
+        if style not in ("probe", "direct"):
+            raise ValueError(f"unknown expert style {style!r}")
+        return PullExpert(env, self, style)
+
+
+class PullExpert:
+    """Close the jaw, travel above the far side of a block, lower the paddle, drag the block
+    toward the other one. ``probe`` first drags at the fixed block until it touches it, lifts,
+    then does the same with the movable block."""
+
+    TRAVEL = 0.12  # tool-centre height while travelling (closed tips 7.5 cm up, blocks 5 cm tall)
+    PUSH_Z = 0.056  # tool-centre height while dragging: closed tips about 1 cm above the floor
+    PUSH_STEP = 0.04  # drag per step (m)
+    PROBE_PUSHES = 3  # most drag attempts at the fixed block before giving up on touching it
+
+    def __init__(self, env: ManipulationEnv, task: BlockPull, style: str) -> None:
+        self.env, self.task = env, task
+        self.follow = Follower(env)
+        targets = [task.fixed, task.movable] if style == "probe" else [task.movable]
+        self.plan: list[tuple[int, str]] = []
+        for body in targets:
+            self.plan += [(body, "travel"), (body, "lower"), (body, "drag")]
+            if body != task.movable:
+                self.plan.append((body, "lift"))
+        self.i = 0
+        self.pushes = 0
+
+    def _pose(self, body: int) -> tuple[np.ndarray, float]:
+        pos, quat = pb.getBasePositionAndOrientation(body, physicsClientId=self.env.client)
+        return np.array(pos), block_yaw(quat)
+
+    def _far_side(self, body: int) -> tuple[np.ndarray, float]:
+        """Paddle goal beyond ``body`` (away from the other block) and the outward direction (+-1)."""
+        pos, yaw = self._pose(body)
+        other = self.task.movable if body == self.task.fixed else self.task.fixed
+        out = 1.0 if pos[1] >= self._pose(other)[0][1] else -1.0
+        return np.array([pos[0], pos[1] + out * standoff(yaw)]), out
+
+    def act(self) -> np.ndarray:
+        body, phase = self.plan[min(self.i, len(self.plan) - 1)]
+        if phase == "drag" and body != self.task.movable:
+            # the fixed block is dragged at until touched (or a few tries), then the paddle lifts
+            if self.env.gripper_touches(body) or self.pushes >= self.PROBE_PUSHES:
+                self.i += 1
+                self.pushes = 0
+                body, phase = self.plan[self.i]
+        goal_xy, out = self._far_side(body)
+        tip = self.env.robot.tcp()
+        done = False
+        if phase == "travel":
+            a, done = self.follow.action(np.array([*goal_xy, self.TRAVEL]), PUSH_YAW, jaw=0.0)
+        elif phase == "lower":
+            a, done = self.follow.action(np.array([*goal_xy, self.PUSH_Z]), PUSH_YAW, jaw=0.0)
+        elif phase == "drag":  # the movable block is dragged until the episode ends
+            x = self._pose(body)[0][0]  # stay centred on the block as it slides
+            goal = np.array([x, tip[1] - out * self.PUSH_STEP, self.PUSH_Z])
+            a, _ = self.follow.action(goal, PUSH_YAW, jaw=0.0)
+            self.pushes += 1
+        else:  # lift straight up before travelling to the next block
+            a, done = self.follow.action(np.array([tip[0], tip[1], self.TRAVEL]), PUSH_YAW, jaw=0.0)
+        if done:
+            self.i += 1
+        return a

@@ -1,0 +1,96 @@
+"""`mea bench tasks`: scripted-expert success, env speed and the transition prior, per task.
+
+Each (task, style) job runs in its own spawned process over seeded episodes and reports success,
+whether the probe demonstrations touched the fixed object, and env steps/s of that process
+(physics + observation, what an actor pays per step). A separate job per task measures the
+deterministic-transition prior MEA relies on (mm / degrees).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing as mp
+import time
+
+import numpy as np
+
+from services.bench.report import emit
+
+STYLES = ("direct", "probe")
+
+
+@dataclasses.dataclass(frozen=True)
+class TasksBenchConfig:
+    """Benchmark the simulated tasks."""
+
+    tasks: tuple[str, ...] = ("block_pull", "block_pick", "drawer_open")
+    """Tasks to measure."""
+    episodes: int = 100
+    """Seeded expert episodes per task and style."""
+    prior_episodes: int = 4
+    """Episodes of random free-space moves for the transition-prior measure (10 steps each)."""
+    workers: int = 2
+    """Processes running jobs in parallel (one core each)."""
+    seed_base: int = 0
+    """First seed."""
+    json: bool = False
+    """Print exactly one JSON object on stdout."""
+
+
+def _expert_job(task: str, style: str, episodes: int, seed_base: int) -> dict:
+    from services.actor.tasks import make_env
+
+    env = make_env(task)
+    success = touched = steps = 0
+    fixed_bodies = None
+    t0 = time.perf_counter()
+    for k in range(episodes):
+        seed = seed_base + k
+        env.reset(seed)
+        expert = env.task.expert(env, style, np.random.default_rng([seed, 3]))
+        # the probe must touch the immovable object: it is whichever slot is not the movable one
+        fixed_bodies = [b for b, _ in env.task.object_segments()[_fixed_name(env)]]
+        touch = False
+        for _ in range(env.settings.max_steps):
+            _, _, terminated, truncated, _ = env.step(expert.act())
+            steps += 1
+            touch = touch or any(env.gripper_touches(b) for b in fixed_bodies)
+            if terminated or truncated:
+                break
+        success += bool(terminated)
+        touched += touch
+    elapsed = time.perf_counter() - t0
+    env.close()
+    return {"task": task, "style": style, "episodes": episodes, "success": success, "success_rate": success / episodes,
+            "touched_fixed": touched, "env_steps": steps, "env_steps_per_s": steps / elapsed}  # fmt: skip
+
+
+def _fixed_name(env) -> str:
+    """Segment name of the immovable object (privileged; the task records which slot it is)."""
+    names = env.task.object_names
+    return names[env.task.fixed_index()]
+
+
+def _prior_job(task: str, episodes: int, seed_base: int) -> dict:
+    from services.actor.tasks import make_env
+    from services.actor.tasks.prior import measure, summarise
+
+    env = make_env(task)
+    samples = []
+    for k in range(episodes):
+        samples += measure(env, seed_base + k, 10, np.random.default_rng(seed_base + k))
+    env.close()
+    return {"task": task, **summarise(samples)}
+
+
+def run(cfg: TasksBenchConfig) -> dict:
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(cfg.workers) as pool:
+        experts = [pool.apply_async(_expert_job, (t, s, cfg.episodes, cfg.seed_base)) for t in cfg.tasks for s in STYLES]
+        priors = [pool.apply_async(_prior_job, (t, cfg.prior_episodes, cfg.seed_base)) for t in cfg.tasks]
+        expert_rows = [r.get() for r in experts]
+        prior_rows = [r.get() for r in priors]
+    speeds = [r["env_steps_per_s"] for r in expert_rows]
+    measured = {"env_steps_per_second": min(speeds) if speeds else None}
+    meta = {"config": dataclasses.asdict(cfg), "note": "env_steps_per_s: one process, physics + observation"}
+    return emit("tasks", {"experts": expert_rows, "transition_prior": prior_rows}, measured, cfg.json, meta)
