@@ -59,7 +59,9 @@ def record(cfg: DemosConfig) -> dict:
             b = actor.expert_episode(kept)
             attempts += 1
             if not b.success:
-                log.info("expert failed; not kept", extra={"seed": b.meta["seed"], "kind": b.meta["policy_kind"]})
+                log.info(
+                    "expert failed; not kept", extra={"seed": b.meta["seed"], "kind": b.meta["policy_kind"]}
+                )
                 continue
             rec.write(b.finish(actor.episode_id(b)))
             seeds.append(b.meta["seed"])

@@ -67,7 +67,9 @@ class ActorConfig:
             raise ValueError(f"expert_style must be alternate, probe or direct, not {self.expert_style!r}")
 
     def env_settings(self) -> EnvSettings:
-        return EnvSettings(depth_image=self.depth_image, camera=CameraSettings(points_per_segment=self.points_per_segment))
+        return EnvSettings(
+            depth_image=self.depth_image, camera=CameraSettings(points_per_segment=self.points_per_segment)
+        )
 
 
 PRESETS = {"default": ActorConfig()}
@@ -77,7 +79,9 @@ def expert_style(cfg_style: str, k: int) -> str:
     return cfg_style if cfg_style != "alternate" else EXPERT_STYLES[k % 2]
 
 
-def run_episode(env: ManipulationEnv, seed: int, act, builder: EpisodeBuilder, on_step=None) -> EpisodeBuilder:
+def run_episode(
+    env: ManipulationEnv, seed: int, act, builder: EpisodeBuilder, on_step=None
+) -> EpisodeBuilder:
     """Roll out one episode with ``act(obs) -> action``; ``on_step(seconds)`` sees each step's time."""
     obs = env.reset(seed)
     builder.observe(obs)
@@ -139,19 +143,31 @@ def _metrics(ctx: ServiceContext):
     m = ctx.metrics
     return {
         "steps": m.counter("mea_actor_env_steps", "Environment steps taken."),
-        "episodes": m.counter("mea_actor_episodes", "Episodes finished and published, by policy kind.", ["kind"]),
+        "episodes": m.counter(
+            "mea_actor_episodes", "Episodes finished and published, by policy kind.", ["kind"]
+        ),
         "successes": m.counter("mea_actor_successes", "Successful episodes, by policy kind.", ["kind"]),
-        "step_seconds": m.histogram("mea_actor_step_seconds", "Wall time of one env step (physics + observation).",
-                                    (0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.2, 0.5, 1.0)),  # fmt: skip
-        "publish_seconds": m.histogram("mea_actor_publish_seconds", "Time to encode and publish one episode.",
-                                       (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.5)),  # fmt: skip
-        "failed_demos": m.counter("mea_actor_failed_demos", "Expert attempts that failed (not published as demos)."),
+        "step_seconds": m.histogram(
+            "mea_actor_step_seconds",
+            "Wall time of one env step (physics + observation).",
+            (0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.2, 0.5, 1.0),
+        ),  # fmt: skip
+        "publish_seconds": m.histogram(
+            "mea_actor_publish_seconds",
+            "Time to encode and publish one episode.",
+            (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.5),
+        ),  # fmt: skip
+        "failed_demos": m.counter(
+            "mea_actor_failed_demos", "Expert attempts that failed (not published as demos)."
+        ),
     }
 
 
 def run(cfg: ActorConfig, bus_factory=None) -> int:
     if cfg.policy == "learned":
-        raise SystemExit("mea actor: the learned policy needs the learner's policy runtime (not in this build)")
+        raise SystemExit(
+            "mea actor: the learned policy needs the learner's policy runtime (not in this build)"
+        )
     counts = {"env_steps": 0, "episodes": 0, "successes": 0}
     kwargs = {"bus_factory": bus_factory} if bus_factory else {}
     with ServiceContext("actor", cfg.service, counters=lambda: counts, index=cfg.index, **kwargs) as ctx:
@@ -176,7 +192,9 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
                 mx["successes"].labels(kind).inc()
 
         demos, attempts = 0, 0
-        while demos < cfg.demos and attempts < cfg.demos * cfg.max_demo_attempts and not ctx.shutdown.is_set():
+        while (
+            demos < cfg.demos and attempts < cfg.demos * cfg.max_demo_attempts and not ctx.shutdown.is_set()
+        ):
             b = actor.expert_episode(demos, on_step)
             attempts += 1
             if b.success:

@@ -86,7 +86,11 @@ def _prior_job(task: str, episodes: int, seed_base: int) -> dict:
 def run(cfg: TasksBenchConfig) -> dict:
     ctx = mp.get_context("spawn")
     with ctx.Pool(cfg.workers) as pool:
-        experts = [pool.apply_async(_expert_job, (t, s, cfg.episodes, cfg.seed_base)) for t in cfg.tasks for s in STYLES]
+        experts = [
+            pool.apply_async(_expert_job, (t, s, cfg.episodes, cfg.seed_base))
+            for t in cfg.tasks
+            for s in STYLES
+        ]
         priors = [pool.apply_async(_prior_job, (t, cfg.prior_episodes, cfg.seed_base)) for t in cfg.tasks]
         expert_rows = [r.get() for r in experts]
         prior_rows = [r.get() for r in priors]

@@ -90,7 +90,9 @@ class WeightsClient:
             self.last_announce_to_loaded_seconds = max(0.0, time.time() - announced_at)
         self.version, self.blob = blob.version, blob
         self._announced = max(self._announced, blob.version)
-        log.info("weights loaded", extra={"version": blob.version, "pull_s": round(self.last_pull_seconds, 4)})
+        log.info(
+            "weights loaded", extra={"version": blob.version, "pull_s": round(self.last_pull_seconds, 4)}
+        )
         return blob
 
     def close(self) -> None:

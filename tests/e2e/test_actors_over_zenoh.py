@@ -24,8 +24,26 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_two_actors_publish_episodes_that_decode(tmp_path):
     port = find_free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    cmd = [sys.executable, "-m", "services.cli", "run", "--task", "block_pick", "--actors", "2", "--demos", "1",
-           "--services", "actor", "--listen", endpoint, "--metrics-port", "0", "--run-dir", str(tmp_path / "run")]
+    cmd = [
+        sys.executable,
+        "-m",
+        "services.cli",
+        "run",
+        "--task",
+        "block_pick",
+        "--actors",
+        "2",
+        "--demos",
+        "1",
+        "--services",
+        "actor",
+        "--listen",
+        endpoint,
+        "--metrics-port",
+        "0",
+        "--run-dir",
+        str(tmp_path / "run"),
+    ]
     proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)  # fmt: skip
     bus = None

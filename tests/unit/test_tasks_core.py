@@ -32,7 +32,12 @@ def _rollout(env, seed: int, actions: np.ndarray):
 def test_same_seed_and_actions_give_identical_observations(env):
     actions = np.random.default_rng(7).uniform(-1, 1, (6, 5))
     first = _rollout(env, 11, actions)
-    _rollout(env, 3, actions[::-1])  # a different episode in between must leave no trace
+    # a different episode in between, ending in contact (expert success), must leave no trace
+    env.reset(3)
+    expert = env.task.expert(env, "direct", np.random.default_rng(3))
+    for _ in range(env.settings.max_steps):
+        if any(env.step(expert.act())[2:4]):
+            break
     again = _rollout(env, 11, actions)
     fresh_env = make_env(env.task.name)
     try:
@@ -67,8 +72,9 @@ def test_observation_shapes_and_gripper_frame(env):
     assert obs.points.shape == (S, P, 3) and obs.points.dtype == np.float32
     assert obs.point_counts.shape == (S,) and (obs.point_counts > 0).all()
     assert 0.0 <= obs.jaw <= 1.0
-    # the gripper's points are centred on the frame origin (their centroid), to a few mm
-    assert np.linalg.norm(obs.points[0].mean(axis=0)) < 0.01
+    # the gripper's points are centred on the frame origin (their calibrated centroid); what the
+    # fixed cameras see of the gripper shifts the observed centroid by up to ~1.5 cm near the edges
+    assert np.linalg.norm(obs.points[0].mean(axis=0)) < 0.02
     # objects lie below the gripper at reset (it starts above them)
     for i in range(1, S):
         assert obs.points[i, :, 2].max() < 0.0
@@ -78,8 +84,10 @@ def test_observation_shapes_and_gripper_frame(env):
 def test_translation_action_shifts_objects_opposite_to_the_gripper(env):
     env.reset(9)
     before = env.observe()
-    a = np.array([1.0, 0.6, -0.4, 0.0, 0.0])
-    after = env.step(a)[0]
+    towards_centre = np.sign(np.array([0.5, 0.0]) - env.robot.target_pos[:2])
+    a = np.array([1.0, 0.6 * towards_centre[0], 0.4 * towards_centre[1], 0.0, 0.0])
+    after, _, _, _, info = env.step(a)
+    assert not info["clipped"]
     shift = after.points[1:].mean(axis=1) - before.points[1:].mean(axis=1)
     expected = -a[1:4] * DELTA_XYZ
     # resampled clouds: centroids agree to a few mm

@@ -23,6 +23,10 @@ MOVABLE_MASS = 0.5  # kg
 MIN_SEPARATION = 3.4 * HALF[0]  # centre distance at reset (m)
 BLOCK_X = (0.4, 0.6)  # range of the blocks' shared x (m)
 TOUCH_DISTANCE = 0.002  # blocks closer than this count as touching (m)
+# pybullet's default collision filters (group, mask): btBroadphaseProxy DefaultFilter/AllFilter for
+# dynamic bodies, StaticFilter/AllFilter^StaticFilter for mass-0 ones (static pairs never collide)
+DYNAMIC_FILTER = (1, -1)
+STATIC_FILTER = (2, -3)
 
 # Expert geometry (closed jaw, gripper yaw 0). The closed tips form a paddle 6.6 cm wide along x
 # and 2.5 cm thick along y, centred on the tool centre; at yaw 0 the pivot sits 13.3 mm on the
@@ -32,6 +36,10 @@ PADDLE_HALF = 0.0125  # half thickness (y) of the closed-tip paddle (m)
 CLEARANCE = 0.008  # gap between paddle and block when lowering behind it (m)
 TCP_Y_RANGE = (WORKSPACE[1, 0] + 0.0133 + 0.002, WORKSPACE[1, 1] + 0.0133 - 0.002)
 PUSH_YAW = 0.0  # jaw closing axis along x: across the pulling line (the y axis)
+# Initial pivot x, y range. x stops at 0.6 (the default goes to 0.65): with the tips at 0.2 m the arm
+# reaches the pivot only up to x = 0.65-0.67 (fully stretched elbow), so a first +x action from
+# x > 0.62 would stall short of its command and break the transition prior.
+INITIAL_XY = ((0.35, -0.15), (0.6, 0.15))
 
 
 def footprint(yaw: float) -> float:
@@ -57,7 +65,9 @@ class BlockPull(Task):
         vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=HALF.tolist(), rgbaColor=(0.9, 0.5, 0.2, 1),
                                    physicsClientId=client)  # fmt: skip
         # one static (mass 0) and one movable body; which slot each takes is random per episode
-        self.fixed = pb.createMultiBody(0.0, col, vis, basePosition=(0.5, 0.1, HALF[2]), physicsClientId=client)
+        self.fixed = pb.createMultiBody(
+            0.0, col, vis, basePosition=(0.5, 0.1, HALF[2]), physicsClientId=client
+        )
         self.movable = pb.createMultiBody(MOVABLE_MASS, col, vis, basePosition=(0.5, -0.1, HALF[2]),
                                           physicsClientId=client)  # fmt: skip
         for b in (self.fixed, self.movable):
@@ -91,6 +101,22 @@ class BlockPull(Task):
                 physicsClientId=self.client,
             )  # fmt: skip
             pb.resetBaseVelocity(body, (0, 0, 0), (0, 0, 0), physicsClientId=self.client)
+        self._forget_contacts()
+
+    def _forget_contacts(self) -> None:
+        """Drop the blocks' cached contact manifolds.
+
+        pb.restoreState (env reset) and re-posing keep Bullet's contact manifolds: the blocks pressed
+        together (or against the gripper) at the end of the last episode would then carry
+        centimetres of stale penetration into the next one and shoot the movable block away
+        (seen at seed 236 after seed 235). Re-setting a body's collision filter re-adds it to the
+        broadphase, which frees all of its pairs; the filter values are pybullet's defaults."""
+        for body, (group, mask) in ((self.fixed, STATIC_FILTER), (self.movable, DYNAMIC_FILTER)):
+            pb.setCollisionFilterGroupMask(body, -1, group, mask, physicsClientId=self.client)
+
+    def initial_gripper(self, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+        xy = rng.uniform(*INITIAL_XY)
+        return xy, float(rng.uniform(-math.pi / 2, math.pi / 2))
 
     def object_segments(self):
         return {name: [(body, None)] for name, body in zip(self.object_names, self.order, strict=True)}
@@ -112,29 +138,31 @@ class BlockPull(Task):
         return self.touching()
 
     def expert(self, env: ManipulationEnv, style: str, rng: np.random.Generator):
-        if style not in ("probe", "direct"):
-            raise ValueError(f"unknown expert style {style!r}")
-        return PullExpert(env, self, style)
+        if style == "probe":
+            return PullExpert(env, self, [self.fixed, self.movable])
+        if style == "direct":
+            return PullExpert(env, self, [self.movable])
+        raise ValueError(f"unknown expert style {style!r}")
 
 
 class PullExpert:
-    """Close the jaw, travel above the far side of a block, lower the paddle, drag the block
-    toward the other one. ``probe`` first drags at the fixed block until it touches it, lifts,
-    then does the same with the movable block."""
+    """Close the jaw, travel above the far side of a block, lower the paddle behind it, drag the
+    block toward the other one. Every block but the last is dragged at only until the gripper
+    touches it (or a few tries), then the paddle lifts and moves on; the last is dragged until
+    the episode ends. ``probe`` = [fixed, movable], ``direct`` = [movable]."""
 
     TRAVEL = 0.12  # tool-centre height while travelling (closed tips 7.5 cm up, blocks 5 cm tall)
     PUSH_Z = 0.056  # tool-centre height while dragging: closed tips about 1 cm above the floor
     PUSH_STEP = 0.04  # drag per step (m)
-    PROBE_PUSHES = 3  # most drag attempts at the fixed block before giving up on touching it
+    PROBE_PUSHES = 3  # most drag attempts at a probed block before moving on
 
-    def __init__(self, env: ManipulationEnv, task: BlockPull, style: str) -> None:
+    def __init__(self, env: ManipulationEnv, task: BlockPull, targets: list[int]) -> None:
         self.env, self.task = env, task
         self.follow = Follower(env)
-        targets = [task.fixed, task.movable] if style == "probe" else [task.movable]
         self.plan: list[tuple[int, str]] = []
-        for body in targets:
+        for k, body in enumerate(targets):
             self.plan += [(body, "travel"), (body, "lower"), (body, "drag")]
-            if body != task.movable:
+            if k < len(targets) - 1:
                 self.plan.append((body, "lift"))
         self.i = 0
         self.pushes = 0
@@ -152,12 +180,12 @@ class PullExpert:
 
     def act(self) -> np.ndarray:
         body, phase = self.plan[min(self.i, len(self.plan) - 1)]
-        if phase == "drag" and body != self.task.movable:
-            # the fixed block is dragged at until touched (or a few tries), then the paddle lifts
-            if self.env.gripper_touches(body) or self.pushes >= self.PROBE_PUSHES:
-                self.i += 1
-                self.pushes = 0
-                body, phase = self.plan[self.i]
+        probing = phase == "drag" and self.i < len(self.plan) - 1
+        # a probed block is dragged at until touched (or a few tries), then the paddle lifts
+        if probing and (self.env.gripper_touches(body) or self.pushes >= self.PROBE_PUSHES):
+            self.i += 1
+            self.pushes = 0
+            body, phase = self.plan[self.i]
         goal_xy, out = self._far_side(body)
         tip = self.env.robot.tcp()
         done = False
@@ -165,7 +193,7 @@ class PullExpert:
             a, done = self.follow.action(np.array([*goal_xy, self.TRAVEL]), PUSH_YAW, jaw=0.0)
         elif phase == "lower":
             a, done = self.follow.action(np.array([*goal_xy, self.PUSH_Z]), PUSH_YAW, jaw=0.0)
-        elif phase == "drag":  # the movable block is dragged until the episode ends
+        elif phase == "drag":
             x = self._pose(body)[0][0]  # stay centred on the block as it slides
             goal = np.array([x, tip[1] - out * self.PUSH_STEP, self.PUSH_Z])
             a, _ = self.follow.action(goal, PUSH_YAW, jaw=0.0)

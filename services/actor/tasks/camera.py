@@ -157,8 +157,9 @@ FINGER_THICKNESS = 0.012  # m, painted finger size across the closing axis ...
 FINGER_WIDTH = 0.025  # ... and along the other horizontal axis
 
 
-def paint_fingers(image: np.ndarray, centre: np.ndarray, grip: np.ndarray, yaw: float, gap: float,
-                  span: float) -> np.ndarray:
+def paint_fingers(
+    image: np.ndarray, centre: np.ndarray, grip: np.ndarray, yaw: float, gap: float, span: float
+) -> np.ndarray:
     """Paint the two fingers as 0-depth rectangles (the public tasks' convention): centred
     ``gap/2`` either side of the grip point along the closing axis (heading ``yaw``)."""
     n = image.shape[0]

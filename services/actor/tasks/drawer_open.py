@@ -60,6 +60,9 @@ class DrawerOpen(Task):
             pb.resetBasePositionAndOrientation(body, (xy[0], xy[1], 0.0), quat, physicsClientId=self.client)
         pb.resetJointState(self.unlocked, SLIDE_JOINT, 0.0, 0.0, physicsClientId=self.client)
 
+    def fixed_index(self) -> int:
+        return self.order.index(self.locked)
+
     def object_segments(self):
         return {name: [(body, None)] for name, body in zip(self.object_names, self.order, strict=True)}
 
@@ -67,7 +70,9 @@ class DrawerOpen(Task):
         """World pose of each drawer link (the sliding part): cabinet pose shifted by the opening."""
         out = []
         for body in self.order:
-            ls = pb.getLinkState(body, DRAWER_LINK, computeForwardKinematics=True, physicsClientId=self.client)
+            ls = pb.getLinkState(
+                body, DRAWER_LINK, computeForwardKinematics=True, physicsClientId=self.client
+            )
             out.append([*ls[4], *ls[5]])
         return np.array(out)
 

@@ -20,7 +20,13 @@ import numpy as np
 import pybullet as pb
 import pybullet_data
 
-from services.actor.tasks.camera import Cameras, CameraSettings, paint_fingers, render_gripper_depth, sample_fixed
+from services.actor.tasks.camera import (
+    Cameras,
+    CameraSettings,
+    paint_fingers,
+    render_gripper_depth,
+    sample_fixed,
+)
 from services.actor.tasks.robot import GRIPPER_LINKS, WORKSPACE, ControlSettings, Robot
 
 SegmentParts = list[tuple[int, int | None]]  # (body id, link index or None for the whole body)
@@ -94,8 +100,9 @@ class Task(ABC):
         return self.order.index(self.fixed)
 
     def initial_gripper(self, rng: np.random.Generator) -> tuple[np.ndarray, float]:
-        """Initial pivot x, y and yaw (the height is fixed by EnvSettings)."""
-        xy = rng.uniform([0.35, -0.15], [0.65, 0.15])
+        """Initial pivot x, y and yaw (the height is fixed by EnvSettings). x stops at 0.6: at the start
+        height the arm reaches the pivot only to x ~ 0.65, and a first move must not stall."""
+        xy = rng.uniform([0.35, -0.15], [0.6, 0.15])
         return xy, float(rng.uniform(-math.pi / 2, math.pi / 2))
 
 
@@ -146,11 +153,30 @@ class ManipulationEnv:
         self.substeps += 1
 
     # --- POMDP --------------------------------------------------------------------------------
+    def _forget_contacts(self) -> None:
+        """Drop Bullet's cached contact pairs of every body but the arm.
+
+        restoreState and re-posing keep contact manifolds: objects pressed together (or against the
+        gripper) at the end of one episode would carry stale penetration into the next and make the
+        next episode depend on the last. Re-setting a link's collision filter re-adds it to the
+        broadphase, which frees all of its pairs; the values are pybullet's defaults (dynamic:
+        group 1, mask all; mass 0: static group 2, mask all but static)."""
+        c = self.client
+        for body in range(pb.getNumBodies(physicsClientId=c)):
+            uid = pb.getBodyUniqueId(body, physicsClientId=c)
+            if uid == self.robot.body:
+                continue
+            for link in range(-1, pb.getNumJoints(uid, physicsClientId=c)):
+                static = pb.getDynamicsInfo(uid, link, physicsClientId=c)[0] == 0.0
+                group, mask = (2, -3) if static else (1, -1)
+                pb.setCollisionFilterGroupMask(uid, link, group, mask, physicsClientId=c)
+
     def reset(self, seed: int) -> Observation:
         pb.restoreState(self._saved, physicsClientId=self.client)
         self.seed, self.t = int(seed), 0
         rng = np.random.default_rng(self.seed)
         self.task.reset(rng)
+        self._forget_contacts()
         xy, yaw = self.task.initial_gripper(rng)
         z = self.settings.initial_tip_height + self.robot.tip_drop
         self.robot.reset(np.array([xy[0], xy[1], z]), yaw, jaw=1.0)

@@ -23,8 +23,12 @@ IDS = {"block_pull": "mea/BlockPull-v0", "block_pick": "mea/BlockPick-v0", "draw
 class MeaTaskEnv(gym.Env):
     metadata = {"render_modes": []}
 
-    def __init__(self, task: str = "block_pull", points_per_segment: int = 256, depth_image: bool = False) -> None:
-        settings = EnvSettings(depth_image=depth_image, camera=CameraSettings(points_per_segment=points_per_segment))
+    def __init__(
+        self, task: str = "block_pull", points_per_segment: int = 256, depth_image: bool = False
+    ) -> None:
+        settings = EnvSettings(
+            depth_image=depth_image, camera=CameraSettings(points_per_segment=points_per_segment)
+        )
         self.sim = make_env(task, settings)
         S = len(self.sim.segment_names)
         obs = {
@@ -65,7 +69,9 @@ class MeaTaskEnv(gym.Env):
 def register_envs() -> None:
     for task, env_id in IDS.items():
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point="services.actor.tasks.gym_env:MeaTaskEnv", kwargs={"task": task})
+            gym.register(
+                id=env_id, entry_point="services.actor.tasks.gym_env:MeaTaskEnv", kwargs={"task": task}
+            )
 
 
 register_envs()

@@ -39,8 +39,14 @@ def _rot_z(points: np.ndarray, angle: float) -> np.ndarray:
     return out
 
 
-def best_fit_yaw(before: np.ndarray, after: np.ndarray, guess: float, span_deg: float = 4.0,
-                 step_deg: float = 0.1, max_points: int = 400) -> float:
+def best_fit_yaw(
+    before: np.ndarray,
+    after: np.ndarray,
+    guess: float,
+    span_deg: float = 4.0,
+    step_deg: float = 0.1,
+    max_points: int = 400,
+) -> float:
     """Yaw (rad) near ``guess`` that best maps ``before`` onto ``after`` (Chamfer grid search)."""
     rng = np.random.default_rng(0)
     if len(before) > max_points:

@@ -25,6 +25,7 @@ DELTA_XYZ = 0.05  # m per unit action
 DELTA_THETA = math.pi / 8  # rad per unit action
 # x, y bounds of the pivot and z bounds of the fingers' lowest point (m), as in the Equi-RSAC tasks
 WORKSPACE = np.array([[0.3, 0.7], [-0.2, 0.2], [0.01, 0.25]])
+REACH = 0.78  # m: the flange stays within this of the shoulder (link 1); measured, IK fails past ~0.8
 YAW_LIMIT = 2.9  # commanded yaw is kept in [-2.9, 2.9] rad: the wrist joint stops at +-3.05
 YAW_OFFSET = math.pi  # gripper yaw 0 = flange yaw pi = wrist joint 6 at 0, mid-range
 
@@ -98,6 +99,7 @@ class Robot:
         n = pb.getNumJoints(self.body, physicsClientId=client)
         info = [pb.getJointInfo(self.body, j, physicsClientId=client) for j in range(n)]
         self._movable = [j for j in range(n) if info[j][2] != pb.JOINT_FIXED]
+        self.shoulder = np.array(pb.getLinkState(self.body, 1, physicsClientId=client)[4])
         self.pivot_offset = np.zeros(3)  # pivot in the flange frame; set by calibrate()
         self.tip_drop = 0.0  # pivot height above the fingers' lowest point, open jaw; set by calibrate()
         self.grip_offset = np.zeros(3)  # where the closed tips meet, flange frame; set by calibrate()
@@ -138,6 +140,14 @@ class Robot:
         """Measured jaw opening in [0, 1] (0 closed, 1 open)."""
         a = (self.finger_angle() - JAW_CLOSED_ANGLE) / (JAW_OPEN_ANGLE - JAW_CLOSED_ANGLE)
         return float(np.clip(a, 0.0, 1.0))
+
+    def reachable(self, pos: np.ndarray, yaw: float) -> np.ndarray:
+        """``pos`` pulled toward the shoulder until the arm can reach it (the workspace's far, high
+        corners are beyond this arm: x = 0.7 at finger height 0.25 m needs a 0.9 m reach)."""
+        flange, _ = self._flange_target(pos, yaw)
+        d = flange - self.shoulder
+        n = float(np.linalg.norm(d))
+        return pos if n <= REACH else pos - d * (1.0 - REACH / n)
 
     def pivot_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Box the commanded pivot stays in: the workspace, with z shifted so that it bounds the tips."""
@@ -227,9 +237,9 @@ class Robot:
         Returns the commanded pivot, yaw and whether the workspace/yaw limits clipped it."""
         a = np.clip(np.asarray(action, dtype=float), -1.0, 1.0)
         want = self.target_pos + a[1:4] * DELTA_XYZ
-        pos = np.clip(want, *self.pivot_bounds())
         want_yaw = self.target_yaw + a[4] * DELTA_THETA
         yaw = float(np.clip(want_yaw, -YAW_LIMIT, YAW_LIMIT))
+        pos = self.reachable(np.clip(want, *self.pivot_bounds()), yaw)
         clipped = bool(np.any(np.abs(pos - want) > 1e-12) or abs(yaw - want_yaw) > 1e-12)
         self.target_pos, self.target_yaw = pos, yaw
         self.jaw = float((a[0] + 1.0) / 2.0)  # the jaw action maps directly to an opening
