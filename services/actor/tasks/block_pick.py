@@ -50,16 +50,6 @@ class BlockPick(Task):
             )
             pb.resetBaseVelocity(body, (0, 0, 0), (0, 0, 0), physicsClientId=self.client)
 
-    def object_segments(self):
-        return {name: [(body, None)] for name, body in zip(self.object_names, self.order, strict=True)}
-
-    def object_poses(self) -> np.ndarray:
-        out = []
-        for body in self.order:
-            pos, quat = pb.getBasePositionAndOrientation(body, physicsClientId=self.client)
-            out.append([*pos, *quat])
-        return np.array(out)
-
     def holding(self, env: ManipulationEnv) -> bool:
         touching = env.gripper_touches(self.movable)
         return bool(touching & set(LEFT_FINGER)) and bool(touching & set(RIGHT_FINGER))

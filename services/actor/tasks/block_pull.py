@@ -118,16 +118,6 @@ class BlockPull(Task):
         xy = rng.uniform(*INITIAL_XY)
         return xy, float(rng.uniform(-math.pi / 2, math.pi / 2))
 
-    def object_segments(self):
-        return {name: [(body, None)] for name, body in zip(self.object_names, self.order, strict=True)}
-
-    def object_poses(self) -> np.ndarray:
-        out = []
-        for body in self.order:
-            pos, quat = pb.getBasePositionAndOrientation(body, physicsClientId=self.client)
-            out.append([*pos, *quat])
-        return np.array(out)
-
     def touching(self) -> bool:
         c = self.client
         if pb.getContactPoints(self.fixed, self.movable, physicsClientId=c):

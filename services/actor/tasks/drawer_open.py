@@ -63,9 +63,6 @@ class DrawerOpen(Task):
     def fixed_index(self) -> int:
         return self.order.index(self.locked)
 
-    def object_segments(self):
-        return {name: [(body, None)] for name, body in zip(self.object_names, self.order, strict=True)}
-
     def object_poses(self) -> np.ndarray:
         """World pose of each drawer link (the sliding part): cabinet pose shifted by the opening."""
         out = []

@@ -77,13 +77,19 @@ class Task(ABC):
     def reset(self, rng: np.random.Generator) -> None:
         """Place objects and choose which one is movable (hidden from the policy)."""
 
-    @abstractmethod
     def object_segments(self) -> dict[str, SegmentParts]:
-        """Segment name -> bodies/links whose points form it (same order as object_names)."""
+        """Segment name -> bodies/links whose points form it (same order as object_names).
 
-    @abstractmethod
+        Default: one whole body per slot of ``self.order`` (the bodies in their hidden order)."""
+        return {name: [(body, None)] for name, body in zip(self.object_names, self.order, strict=True)}
+
     def object_poses(self) -> np.ndarray:
         """(M, 7) world poses (x, y, z, qx, qy, qz, qw) of the objects, in object_names order."""
+        out = []
+        for body in self.order:
+            pos, quat = pb.getBasePositionAndOrientation(body, physicsClientId=self.client)
+            out.append([*pos, *quat])
+        return np.array(out)
 
     @abstractmethod
     def success(self, env: ManipulationEnv) -> bool:
