@@ -15,6 +15,11 @@ BENCHES: dict[str, tuple[str, str, str]] = {
         "TransportBenchConfig",
         "wire codec and Zenoh transport speeds",
     ),
+    "tasks": (
+        "services.bench.tasks",
+        "TasksBenchConfig",
+        "scripted-expert success, env steps/s and the transition prior per task",
+    ),
 }
 
 
