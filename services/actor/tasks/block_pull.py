@@ -23,10 +23,6 @@ MOVABLE_MASS = 0.5  # kg
 MIN_SEPARATION = 3.4 * HALF[0]  # centre distance at reset (m)
 BLOCK_X = (0.4, 0.6)  # range of the blocks' shared x (m)
 TOUCH_DISTANCE = 0.002  # blocks closer than this count as touching (m)
-# pybullet's default collision filters (group, mask): btBroadphaseProxy DefaultFilter/AllFilter for
-# dynamic bodies, StaticFilter/AllFilter^StaticFilter for mass-0 ones (static pairs never collide)
-DYNAMIC_FILTER = (1, -1)
-STATIC_FILTER = (2, -3)
 
 # Expert geometry (closed jaw, gripper yaw 0). The closed tips form a paddle 6.6 cm wide along x
 # and 2.5 cm thick along y, centred on the tool centre; at yaw 0 the pivot sits 13.3 mm on the
@@ -101,18 +97,6 @@ class BlockPull(Task):
                 physicsClientId=self.client,
             )  # fmt: skip
             pb.resetBaseVelocity(body, (0, 0, 0), (0, 0, 0), physicsClientId=self.client)
-        self._forget_contacts()
-
-    def _forget_contacts(self) -> None:
-        """Drop the blocks' cached contact manifolds.
-
-        pb.restoreState (env reset) and re-posing keep Bullet's contact manifolds: the blocks pressed
-        together (or against the gripper) at the end of the last episode would then carry
-        centimetres of stale penetration into the next one and shoot the movable block away
-        (seen at seed 236 after seed 235). Re-setting a body's collision filter re-adds it to the
-        broadphase, which frees all of its pairs; the filter values are pybullet's defaults."""
-        for body, (group, mask) in ((self.fixed, STATIC_FILTER), (self.movable, DYNAMIC_FILTER)):
-            pb.setCollisionFilterGroupMask(body, -1, group, mask, physicsClientId=self.client)
 
     def initial_gripper(self, rng: np.random.Generator) -> tuple[np.ndarray, float]:
         xy = rng.uniform(*INITIAL_XY)

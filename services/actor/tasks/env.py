@@ -160,29 +160,27 @@ class ManipulationEnv:
 
     # --- POMDP --------------------------------------------------------------------------------
     def _forget_contacts(self) -> None:
-        """Drop Bullet's cached contact pairs of every body but the arm.
+        """Drop Bullet's cached contact pairs before restoring the saved state.
 
-        restoreState and re-posing keep contact manifolds: objects pressed together (or against the
-        gripper) at the end of one episode would carry stale penetration into the next and make the
-        next episode depend on the last. Re-setting a link's collision filter re-adds it to the
-        broadphase, which frees all of its pairs; the values are pybullet's defaults (dynamic:
-        group 1, mask all; mass 0: static group 2, mask all but static)."""
+        restoreState keeps contact manifolds: objects pressed together (or against the gripper)
+        at the end of one episode would carry stale penetration into the next and make it depend
+        on the last. Moving every body but the arm far apart and running collision detection
+        makes the broadphase free all their pairs; restoreState then puts everything back."""
         c = self.client
-        for body in range(pb.getNumBodies(physicsClientId=c)):
-            uid = pb.getBodyUniqueId(body, physicsClientId=c)
-            if uid == self.robot.body:
-                continue
-            for link in range(-1, pb.getNumJoints(uid, physicsClientId=c)):
-                static = pb.getDynamicsInfo(uid, link, physicsClientId=c)[0] == 0.0
-                group, mask = (2, -3) if static else (1, -1)
-                pb.setCollisionFilterGroupMask(uid, link, group, mask, physicsClientId=c)
+        for i in range(pb.getNumBodies(physicsClientId=c)):
+            uid = pb.getBodyUniqueId(i, physicsClientId=c)
+            if uid != self.robot.body:
+                pb.resetBasePositionAndOrientation(
+                    uid, (100.0 + 10.0 * i, 0.0, 100.0), (0, 0, 0, 1), physicsClientId=c
+                )
+        pb.performCollisionDetection(physicsClientId=c)
 
     def reset(self, seed: int) -> Observation:
+        self._forget_contacts()
         pb.restoreState(self._saved, physicsClientId=self.client)
         self.seed, self.t = int(seed), 0
         rng = np.random.default_rng(self.seed)
         self.task.reset(rng)
-        self._forget_contacts()
         xy, yaw = self.task.initial_gripper(rng)
         z = self.settings.initial_tip_height + self.robot.tip_drop
         self.robot.reset(np.array([xy[0], xy[1], z]), yaw, jaw=1.0)
