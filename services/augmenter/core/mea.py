@@ -1,0 +1,297 @@
+"""Multi-Group Equivariant Augmentation (MEA), paper Sec. V, generated backwards in time.
+
+Read beside the paper:
+
+* Phases (Sec. V-A, App. B). Termination (t = H) and trivial (H_p <= t < H) transitions are kept as
+  they are (trivial representation). Non-trivial transitions (t < H_p) are those where the gripper
+  cannot touch an object: its height h_t = h_0 + sum_{j<t} a^z_j Delta stays at or above L_z.
+  H_p is the first step below L_z, minus a conservative margin.
+* Structured actions (Sec. V-B). For t < H_p, with g_t = (delta^r, delta^z, delta^rot, delta^theta)
+  drawn independently per step:
+      abar^xyz_t = R_z(delta^rot) (delta^r a^x, delta^r a^y, delta^z a^z)
+      abar^theta_t = a^theta_t + delta^theta * eps,  eps ~ U[-1, 1]
+  every element clipped to [-1, 1]; the jaw action is unchanged. (The paper prints the radial
+  scale as k = (a^x/|a^xy| delta^r, a^y/|a^xy| delta^r, delta^z) applied element-wise, which would
+  square a^x and lose its sign; we implement the scaling it describes: the x-y part scaled by
+  delta^r along its own direction.)
+* Observations (Sec. V-A, App. A). From the transition prior (objects move by -a Delta in the
+  gripper-centric frame, the gripper turns by a^theta Delta_theta) and the requirement that the
+  augmented state at H_p equals the real one:
+      obar^c_t = o^c_t - D_t,      D_t = Delta * sum_{j=t}^{H_p-1} (a^xyz_j - abar^xyz_j)
+      obar^g_t = R_z(Theta_t) o^g_t, Theta_t = Delta_theta * sum_{j=t}^{H_p-1} (a^theta_j - abar^theta_j)
+  jaw observation, rewards and flags unchanged. In the world the objects stay put and the gripper
+  is at p_t + D_t with yaw psi_t + Theta_t; that is what the feasibility guards and the physics
+  audit check.
+* Feasibility guards (left implicit in the paper). Every augmented gripper pose must be reachable
+  and inside the workspace, and at or above L_z, or the robot's own clipping would break the
+  transition prior. A step whose draws keep failing ends the augmentation there: the episode is
+  cut to start at the next step. Steps where the recorded motion did not follow the action
+  (clipped by the workspace or blocked) cannot be augmented across either.
+
+Actions are (jaw, dx, dy, dz, dtheta); Delta = 0.05 m, Delta_theta = pi/8.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from proto.episode import Augmentation, Episode
+
+DELTA_XYZ = 0.05
+DELTA_THETA = math.pi / 8
+JAW, XYZ, THETA = 0, slice(1, 4), 4
+
+
+@dataclass(frozen=True)
+class MeaSettings:
+    """Phases, group ranges and feasibility limits of MEA (defaults: the general-manipulation tasks)."""
+
+    lz: float = 0.27
+    """L_z: gripper (pivot) height in m at or above which the gripper cannot touch an object. The
+    pivot sits 0.19 m above the finger tips, objects are at most 0.065 m tall."""
+    margin_steps: int = 1
+    """Conservative margin: H_p is moved this many steps earlier than the height criterion gives."""
+    height_from: str = "actions"
+    """How h_t is known: `actions` (h_0 + cumulative dz, clipped like the controller; the paper) or
+    `recorded` (the privileged gripper pose)."""
+    radial_scale: tuple[float, float] = (0.75, 1.0)
+    """Range of delta^r."""
+    height_scale: tuple[float, float] = (0.75, 1.0)
+    """Range of delta^z."""
+    rotation: tuple[float, float] = (0.0, 2 * math.pi)
+    """Range of delta^rot (rad)."""
+    theta_noise: tuple[float, float] = (0.0, 0.3)
+    """Range of delta^theta."""
+    discrete: bool = False
+    """Discrete actions (surgical domain): x/y actions rotated by a C4 element with probability
+    `discrete_rotate_prob`; z, theta and jaw actions unchanged."""
+    discrete_rotate_prob: float = 0.3
+    """Probability of rotating a discrete x/y action."""
+    max_tries: int = 20
+    """Draws per step before the augmentation is cut at that step."""
+    pivot_low: tuple[float, float, float] = (0.3, -0.2, 0.2)
+    """Lower bounds of the gripper pivot (x, y, z), m: workspace with z = finger tips + 0.19."""
+    pivot_high: tuple[float, float, float] = (0.7, 0.2, 0.44)
+    """Upper bounds of the gripper pivot (x, y, z), m."""
+    yaw_limit: float = 2.9
+    """|yaw| limit (rad) of the wrist."""
+    reach_origin: tuple[float, float, float] = (-0.1, 0.0, 0.2)
+    """Centre of the arm's reach sphere for the pivot (the shoulder, shifted down to the pivot)."""
+    reach_radius: float = 0.77
+    """Radius of the arm's reach sphere for the pivot (m)."""
+    prior_tolerance: float = 0.002
+    """Recorded pivot motion may differ from a * Delta by this much (m) and still count as free."""
+    yaw_tolerance: float = 0.02
+    """Recorded yaw change may differ from a^theta * Delta_theta by this much (rad)."""
+
+    def __post_init__(self) -> None:
+        if self.height_from not in ("actions", "recorded"):
+            raise ValueError(f"height_from must be actions or recorded, not {self.height_from!r}")
+        if self.margin_steps < 0 or self.max_tries < 1:
+            raise ValueError("margin_steps must be >= 0 and max_tries >= 1")
+
+
+# --------------------------------------------------------------------------------------------
+# phases
+# --------------------------------------------------------------------------------------------
+
+
+def heights(ep: Episode, s: MeaSettings) -> np.ndarray:
+    """h_t for t = 0..T: known initial height plus the clipped cumulative dz (or the recorded pose)."""
+    if s.height_from == "recorded":
+        return ep.gripper_pose[:, 2].astype(np.float64)
+    h = np.empty(ep.num_steps + 1)
+    h[0] = float(ep.gripper_pose[0, 2])
+    for t in range(ep.num_steps):
+        h[t + 1] = min(max(h[t] + float(ep.actions[t, 3]) * DELTA_XYZ, s.pivot_low[2]), s.pivot_high[2])
+    return h
+
+
+def phase_split(ep: Episode, s: MeaSettings) -> int:
+    """H_p: first step whose gripper height is below L_z, minus the margin (T if it never is)."""
+    below = np.nonzero(heights(ep, s) < s.lz)[0]
+    first = int(below[0]) if len(below) else ep.num_steps
+    return max(0, min(first, ep.num_steps) - s.margin_steps)
+
+
+def free_motion_start(ep: Episode, hp: int, s: MeaSettings) -> int:
+    """First step from which every transition before H_p moved the gripper as commanded.
+
+    Transitions whose recorded pivot motion differs from a * Delta (workspace clipping, a blocked
+    arm) break the transition prior, so no augmented step may precede them."""
+    pose = ep.gripper_pose[: hp + 1].astype(np.float64)
+    moved = np.diff(pose[:, :3], axis=0)
+    commanded = ep.actions[:hp, XYZ].astype(np.float64) * DELTA_XYZ
+    turned = np.diff(pose[:, 3]) - ep.actions[:hp, THETA].astype(np.float64) * DELTA_THETA
+    turned = (turned + math.pi) % (2 * math.pi) - math.pi
+    off = (np.linalg.norm(moved - commanded, axis=1) > s.prior_tolerance) | (np.abs(turned) > s.yaw_tolerance)
+    bad = np.nonzero(off)[0]
+    return int(bad[-1]) + 1 if len(bad) else 0
+
+
+# --------------------------------------------------------------------------------------------
+# structured actions
+# --------------------------------------------------------------------------------------------
+
+
+def rotate_xy(v: np.ndarray, angle: float) -> np.ndarray:
+    """Rotate the first two components of ``v`` (..., >=2) by ``angle`` about z."""
+    c, s = math.cos(angle), math.sin(angle)
+    out = np.array(v, dtype=np.float64, copy=True)
+    out[..., 0] = c * v[..., 0] - s * v[..., 1]
+    out[..., 1] = s * v[..., 0] + c * v[..., 1]
+    return out
+
+
+def draw_group(rng: np.random.Generator, s: MeaSettings) -> np.ndarray:
+    """g_t = (delta^r, delta^z, delta^rot, delta^theta, eps) for one step."""
+    if s.discrete:
+        rotate = rng.random() < s.discrete_rotate_prob
+        quarter = float(rng.integers(4)) * math.pi / 2 if rotate else 0.0
+        return np.array([1.0, 1.0, quarter, 0.0, 0.0])
+    return np.array([
+        rng.uniform(*s.radial_scale),
+        rng.uniform(*s.height_scale),
+        rng.uniform(*s.rotation),
+        rng.uniform(*s.theta_noise),
+        rng.uniform(-1.0, 1.0),
+    ])  # fmt: skip
+
+
+def structured_action(a: np.ndarray, g: np.ndarray, discrete: bool = False) -> np.ndarray:
+    """abar_t from a_t and g_t (Sec. V-B); clipped to [-1, 1]."""
+    a = np.asarray(a, dtype=np.float64)
+    out = a.copy()
+    if discrete:
+        if np.any(a[1:3] != 0.0):  # only x/y translations take the C4 rotation
+            out[1:3] = np.rint(rotate_xy(a[1:3], g[2]))
+        return np.clip(out, -1.0, 1.0)
+    dr, dz, rot, dtheta, eps = g
+    scaled = np.array([dr * a[1], dr * a[2], dz * a[3]])
+    out[XYZ] = rotate_xy(scaled, rot)
+    out[THETA] = a[THETA] + dtheta * eps
+    return np.clip(out, -1.0, 1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# feasibility and the backward pass
+# --------------------------------------------------------------------------------------------
+
+
+def feasible(pos: np.ndarray, yaw: float, s: MeaSettings) -> bool:
+    """An augmented gripper pose the robot can take without clipping or touching objects."""
+    return bool(
+        np.all(pos >= np.asarray(s.pivot_low) - 1e-9)
+        and np.all(pos <= np.asarray(s.pivot_high) + 1e-9)
+        and pos[2] >= s.lz
+        and abs(yaw) <= s.yaw_limit
+        and np.linalg.norm(pos - np.asarray(s.reach_origin)) <= s.reach_radius
+    )
+
+
+@dataclass
+class MeaDraw:
+    """The backward pass of one copy: augmented actions, offsets and what was rejected."""
+
+    start: int  # first step kept (the episode is cut before it)
+    hp: int  # H_p in the original step indices
+    actions: np.ndarray  # (T, 5) abar (trivial phase equal to a)
+    offset_xyz: np.ndarray  # (T+1, 3) D_t (0 from H_p on)
+    offset_yaw: np.ndarray  # (T+1,) Theta_t
+    groups: np.ndarray  # (T, 5) g_t used (NaN outside the non-trivial phase)
+    rejections: int  # draws refused by the feasibility guards
+    cut: bool  # the guards cut the episode short
+
+
+def backward_pass(ep: Episode, s: MeaSettings, rng: np.random.Generator) -> MeaDraw:
+    """Generate abar_t for t = H_p-1 down to the first step, with feasibility guards."""
+    T = ep.num_steps
+    hp = phase_split(ep, s)
+    start = free_motion_start(ep, hp, s)
+    a = ep.actions.astype(np.float64)
+    abar = a.copy()
+    D = np.zeros((T + 1, 3))
+    theta = np.zeros(T + 1)
+    groups = np.full((T, 5), np.nan)
+    pose = ep.gripper_pose.astype(np.float64)
+    rejections, cut = 0, False
+    for t in range(hp - 1, start - 1, -1):
+        for _ in range(s.max_tries):
+            g = draw_group(rng, s)
+            cand = structured_action(a[t], g, s.discrete)
+            d = D[t + 1] + (a[t, XYZ] - cand[XYZ]) * DELTA_XYZ
+            th = theta[t + 1] + (a[t, THETA] - cand[THETA]) * DELTA_THETA
+            if feasible(pose[t, :3] + d, pose[t, 3] + th, s):
+                abar[t], D[t], theta[t], groups[t] = cand, d, th, g
+                break
+            rejections += 1
+        else:
+            start, cut = t + 1, True
+            break
+    return MeaDraw(start, hp, abar, D, theta, groups, rejections, cut)
+
+
+# --------------------------------------------------------------------------------------------
+# the augmented episode
+# --------------------------------------------------------------------------------------------
+
+
+def _rotate_points(points: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Rotate (T, P, 3) points about z by a per-step angle (T,)."""
+    c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    out = points.copy()
+    out[..., 0] = c * points[..., 0] - s * points[..., 1]
+    out[..., 1] = s * points[..., 0] + c * points[..., 1]
+    return out
+
+
+def apply_draw(ep: Episode, draw: MeaDraw) -> dict[str, np.ndarray]:
+    """Augmented arrays for steps draw.start..T (observations) and draw.start..T-1 (transitions)."""
+    s0 = draw.start
+    points = ep.points[s0:].astype(np.float64, copy=True)
+    D, theta = draw.offset_xyz[s0:], draw.offset_yaw[s0:]
+    points[:, 1:] -= D[:, None, None, :]  # objects translated by -D_t
+    points[:, 0] = _rotate_points(points[:, 0], theta)  # gripper turned by Theta_t about its centroid
+    pose = ep.gripper_pose[s0:].astype(np.float64, copy=True)
+    pose[:, :3] += D
+    pose[:, 3] += theta
+    return {
+        "points": points.astype(np.float32),
+        "point_counts": np.asarray(ep.point_counts[s0:]),
+        "jaw": np.asarray(ep.jaw[s0:]),
+        "actions": draw.actions[s0:].astype(np.float32),
+        "rewards": np.asarray(ep.rewards[s0:]),
+        "terminated": np.asarray(ep.terminated[s0:]),
+        "truncated": np.asarray(ep.truncated[s0:]),
+        "gripper_pose": pose.astype(np.float32),
+        "object_poses": np.asarray(ep.object_poses[s0:]),
+        "contacts": np.asarray(ep.contacts[s0:]),
+    }
+
+
+def augment(
+    ep: Episode, s: MeaSettings, rng: np.random.Generator, *, seed: int, copy_index: int, episode_id: str
+) -> tuple[Episode | None, MeaDraw]:
+    """One MEA copy of ``ep`` (None when no non-trivial step survives the guards)."""
+    draw = backward_pass(ep, s, rng)
+    if draw.hp - draw.start < 1:
+        return None, draw
+    arrays = apply_draw(ep, draw)
+    n = draw.hp - draw.start
+    g = draw.groups[draw.start : draw.hp]
+    params = {
+        "delta_r": g[:, 0].copy(),
+        "delta_z": g[:, 1].copy(),
+        "delta_rot": g[:, 2].copy(),
+        "delta_theta": g[:, 3].copy(),
+        "eps": g[:, 4].copy(),
+        "start": np.array([draw.start], np.int64),
+    }
+    aug = Augmentation(source_episode_id=ep.episode_id, kind="mea", seed=seed, copy_index=copy_index,
+                       phase_split=n, params=params)  # fmt: skip
+    out = dataclasses.replace(ep, episode_id=episode_id, images=None, augmentation=aug, **arrays)
+    return out, draw
