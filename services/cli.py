@@ -18,6 +18,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "augmenter": ("services.augmenter.main", "run the MEA augmenter on raw episodes"),
     "learner": ("services.learner.main", "train Equi-RSAC / GASv2 and broadcast weights"),
     "evaluator": ("services.evaluator.main", "evaluate broadcast weights on held-out seeds"),
+    "audit": (
+        "services.augmenter.audit",
+        "replay augmented episodes through physics and report their validity",
+    ),
     "demos": ("services.actor.demos", "record scripted demonstrations of a task to an MCAP file"),
     "bench": ("services.bench.cli", "benchmarks that print tables (or one JSON object with --json)"),
 }

@@ -15,6 +15,11 @@ BENCHES: dict[str, tuple[str, str, str]] = {
         "TransportBenchConfig",
         "wire codec and Zenoh transport speeds",
     ),
+    "augment": (
+        "services.bench.augment",
+        "AugmentBenchConfig",
+        "augmented transitions/s per core including re-projection, and raw-in to augmented-out latency",
+    ),
     "tasks": (
         "services.bench.tasks",
         "TasksBenchConfig",

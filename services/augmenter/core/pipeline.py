@@ -1,0 +1,118 @@
+"""From one raw episode to what the replay stores: the raw episode, its isometric copies and, for
+the episodes MEA applies to, its MEA copies, every one re-projected through the same voxel
+projection.
+
+Following the paper's integration with Equi-RSAC: every stored episode gets ``isometric_copies``
+rotated copies (4); MEA makes ``mea_copies`` (6) per demonstration by default, and all MEA copies
+of one episode share a single isometric rotation (G_t x G). Each copy's draws come from
+``np.random.default_rng([seed, copy_index])`` with the seed recorded in its provenance, so any copy
+can be regenerated from its source episode.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from proto.episode import Episode
+from services.augmenter.core.isometric import compose_with_mea, isometric_copy
+from services.augmenter.core.mea import MeaSettings, augment
+from services.augmenter.core.projection import (
+    ProjectionSpec,
+    observation_channels,
+    project_batch,
+    quantize,
+    segments_to_points,
+)
+
+MEA_ON = ("demos", "successes", "all", "none")
+
+
+@dataclass(frozen=True)
+class AugmentSettings:
+    """What the augmenter makes of each raw episode."""
+
+    mea_copies: int = 6
+    """MEA copies per episode MEA applies to (paper: 6 for Equi-RSAC, 200 for GASv2)."""
+    mea_on: str = "demos"
+    """Which episodes get MEA: demos (the paper), successes, all (beyond the paper), none."""
+    isometric_copies: int = 4
+    """Rotated copies of every stored episode (Equi-RSAC: 4)."""
+    isometric_on_mea: bool = True
+    """Rotate all MEA copies of an episode by one shared random angle (G_t x G)."""
+    reproject: bool = True
+    """Attach voxel-projected images (depth + jaw, uint8) to every output episode."""
+    seed: int = 0
+    """Base seed; each source episode's seed mixes it with a hash of the episode id."""
+    mea: MeaSettings = field(default_factory=MeaSettings)
+    """MEA phases, group ranges and feasibility limits."""
+    projection: ProjectionSpec = field(default_factory=ProjectionSpec)
+    """Voxel projection of the observations."""
+
+    def __post_init__(self) -> None:
+        if self.mea_on not in MEA_ON:
+            raise ValueError(f"mea_on must be one of {MEA_ON}, not {self.mea_on!r}")
+        if self.mea_copies < 0 or self.isometric_copies < 0:
+            raise ValueError("copy counts must be >= 0")
+
+    def applies_mea(self, ep: Episode) -> bool:
+        if self.mea_copies == 0 or self.mea_on == "none":
+            return False
+        success = bool(ep.terminated[-1])
+        return {"demos": ep.is_demo and success, "successes": success, "all": True}[self.mea_on]
+
+
+@dataclass
+class AugmentStats:
+    """Counters of one call, for metrics."""
+
+    outputs: int = 0
+    mea_made: int = 0
+    mea_empty: int = 0  # copies with no non-trivial step left after the guards
+    rejections: int = 0  # group draws refused by the feasibility guards
+    cuts: int = 0  # copies cut short by the guards
+    transitions: int = 0
+
+
+def episode_seed(base: int, episode_id: str) -> int:
+    return (zlib.crc32(episode_id.encode()) ^ (base * 0x9E3779B1)) & 0x7FFF_FFFF_FFFF_FFFF
+
+
+def with_images(ep: Episode, spec: ProjectionSpec) -> Episode:
+    """Attach the policy images: voxel projection of all segments + the jaw channel, uint8."""
+    points, valid = segments_to_points(ep.points, ep.point_counts)
+    depth = project_batch(points, spec, valid)
+    return dataclasses.replace(ep, images=quantize(observation_channels(depth, ep.jaw, spec), spec))
+
+
+def augment_episode(raw: Episode, s: AugmentSettings) -> tuple[list[Episode], AugmentStats]:
+    """The raw episode followed by its isometric copies and MEA copies."""
+    stats = AugmentStats()
+    seed = episode_seed(s.seed, raw.episode_id)
+    out = [raw]
+    for k in range(s.isometric_copies):
+        phi = float(np.random.default_rng([seed, k]).uniform(0, 2 * math.pi))
+        out.append(isometric_copy(raw, phi, seed=seed, copy_index=k, episode_id=f"{raw.episode_id}.iso{k}"))
+    if s.applies_mea(raw):
+        phi = float(np.random.default_rng([seed, 1_000_000]).uniform(0, 2 * math.pi))
+        for k in range(s.mea_copies):
+            rng = np.random.default_rng([seed, 1_000_001 + k])
+            copy, draw = augment(
+                raw, s.mea, rng, seed=seed, copy_index=k, episode_id=f"{raw.episode_id}.mea{k}"
+            )
+            stats.rejections += draw.rejections
+            stats.cuts += int(draw.cut)
+            if copy is None:
+                stats.mea_empty += 1
+                continue
+            stats.mea_made += 1
+            out.append(compose_with_mea(copy, phi) if s.isometric_on_mea else copy)
+    if s.reproject:
+        out = [with_images(e, s.projection) for e in out]
+    stats.outputs = len(out)
+    stats.transitions = sum(e.num_steps for e in out)
+    return out, stats
