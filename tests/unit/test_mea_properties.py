@@ -25,65 +25,10 @@ from services.augmenter.core.mea import (
     phase_split,
     structured_action,
 )
+from tests.helpers.synthetic import synthetic_episode
 
 pytestmark = pytest.mark.unit
 SETTINGS = MeaSettings()
-
-
-class SyntheticWorld:
-    """Objects fixed in the world, a rigid gripper cloud, the prior's transitions."""
-
-    def __init__(self, rng: np.random.Generator, P: int = 32) -> None:
-        self.objects = [
-            rng.normal([0.45, -0.08, 0.025], 0.01, (P, 3)),
-            rng.normal([0.55, 0.1, 0.025], 0.01, (P, 3)),
-        ]
-        self.gripper_local = rng.normal(0.0, 0.03, (P, 3))
-        self.gripper_local -= self.gripper_local.mean(0)
-
-    def observe(self, pos: np.ndarray, yaw: float) -> np.ndarray:
-        c, s = math.cos(yaw), math.sin(yaw)
-        g = self.gripper_local.copy()
-        g[:, 0], g[:, 1] = (
-            c * self.gripper_local[:, 0] - s * self.gripper_local[:, 1],
-            (s * self.gripper_local[:, 0] + c * self.gripper_local[:, 1]),
-        )
-        return np.stack([g] + [o - pos for o in self.objects]).astype(np.float32)
-
-    def rollout(self, pos0: np.ndarray, yaw0: float, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        poses = [np.array([*pos0, yaw0])]
-        for a in actions:
-            p = poses[-1]
-            poses.append(np.array([*(p[:3] + a[1:4] * DELTA_XYZ), p[3] + a[4] * DELTA_THETA]))
-        poses = np.array(poses)
-        points = np.stack([self.observe(p[:3], p[3]) for p in poses])
-        return points, poses
-
-
-def synthetic_episode(seed: int, T: int = 20) -> tuple[Episode, SyntheticWorld]:
-    """An approach from above (height 0.38) that goes below L_z around the middle, then contact-like steps."""
-    rng = np.random.default_rng(seed)
-    world = SyntheticWorld(rng)
-    actions = rng.uniform(-0.5, 0.5, (T, 5)).astype(np.float32)
-    actions[:, 0] = np.sign(rng.uniform(-1, 1, T))
-    down_at = int(rng.integers(4, T - 4))
-    actions[:down_at, 3] = rng.uniform(-0.4, 0.2, down_at)  # drift while high
-    actions[down_at : down_at + 3, 3] = -1.0  # descend below L_z
-    actions[down_at + 3 :, 3] = 0.0
-    pos0 = np.array([rng.uniform(0.4, 0.6), rng.uniform(-0.1, 0.1), 0.38])
-    points, poses = world.rollout(pos0, float(rng.uniform(-1, 1)), actions)
-    terminated = np.zeros(T, bool)
-    terminated[-1] = True
-    ep = Episode(
-        episode_id=f"syn-{seed}", task="block_pick", seed=seed, actor_id="syn", policy_version=-1,
-        policy_kind="expert_direct", is_demo=True, created_at=1.0, segments=["gripper", "object_0", "object_1"],
-        points=points, point_counts=np.full((T + 1, 3), points.shape[2], np.int32),
-        jaw=np.linspace(1, 0, T + 1).astype(np.float32), actions=actions,
-        rewards=np.r_[np.zeros(T - 1), 1.0].astype(np.float32), terminated=terminated, truncated=np.zeros(T, bool),
-        gripper_pose=poses.astype(np.float32), object_poses=np.zeros((T + 1, 2, 7), np.float32),
-        contacts=np.zeros((T + 1, 2), bool),
-    )  # fmt: skip
-    return ep, world
 
 
 SEEDS = range(12)
