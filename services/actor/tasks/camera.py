@@ -192,7 +192,10 @@ def render_gripper_depth(
     changes by height/distance, under 9% over the 0.44 m between the gripper and the floor).
     The caller hides the gripper's own links (they would block the view) and paints its fingers."""
     plane = float(centre[2]) + height
-    eye = (float(centre[0]), float(centre[1]), plane + TELEPHOTO_DISTANCE)
+    # the tiny renderer samples pixel corners; shifting half a pixel puts the gripper on the corner
+    # between the four centre pixels, as the voxel projection does (rows +x, columns +y)
+    half = span / size / 2
+    eye = (float(centre[0]) - half, float(centre[1]) + half, plane + TELEPHOTO_DISTANCE)
     view = pb.computeViewMatrix(eye, (eye[0], eye[1], plane), (-1.0, 0.0, 0.0))
     fov = math.degrees(2 * math.atan(span / 2 / TELEPHOTO_DISTANCE))
     near, farp = TELEPHOTO_DISTANCE - 0.05, TELEPHOTO_DISTANCE + far

@@ -23,9 +23,7 @@ from services.augmenter.core.isometric import compose_with_mea, isometric_copy
 from services.augmenter.core.mea import MeaSettings, augment
 from services.augmenter.core.projection import (
     ProjectionSpec,
-    observation_channels,
-    project_batch,
-    quantize,
+    quantized_observations,
     segments_to_points,
 )
 
@@ -84,9 +82,9 @@ def episode_seed(base: int, episode_id: str) -> int:
 
 def with_images(ep: Episode, spec: ProjectionSpec) -> Episode:
     """Attach the policy images: voxel projection of all segments + the jaw channel, uint8."""
+    # == quantize(observation_channels(project_batch(points, spec, valid), ep.jaw, spec), spec)
     points, valid = segments_to_points(ep.points, ep.point_counts)
-    depth = project_batch(points, spec, valid)
-    return dataclasses.replace(ep, images=quantize(observation_channels(depth, ep.jaw, spec), spec))
+    return dataclasses.replace(ep, images=quantized_observations(points, ep.jaw, spec, valid))
 
 
 def augment_episode(raw: Episode, s: AugmentSettings) -> tuple[list[Episode], AugmentStats]:

@@ -47,6 +47,7 @@ Policy input
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -56,11 +57,13 @@ __all__ = [
     "ProjectionSpec",
     "dequantize",
     "dequantize_depth",
+    "depth_indices",
     "observation_channels",
     "project",
     "project_batch",
     "quantize",
     "quantize_depth",
+    "quantized_observations",
     "segments_to_points",
 ]
 
@@ -162,6 +165,18 @@ def project_batch(
     temporaries small and cache-resident; a single pass over, say, 50 x 3072 points would spend most
     of its time in page faults of ~10 MB of fresh temporaries.
     """
+    kmin = depth_indices(points, spec, valid)
+    return spec.depth_levels.take(kmin)  # (k + 0.5) v; 0 if empty (code 255)
+
+
+def depth_indices(
+    points: np.ndarray, spec: ProjectionSpec = DEFAULT_SPEC, valid: np.ndarray | None = None
+) -> np.ndarray:
+    """The integer core of `project_batch`: (T, M, 3) -> (T, N, N) uint8 topmost depth index.
+
+    Entry ``[t, i, j]`` is ``min k`` over the valid points of frame t in column (i, j), or 255 when
+    the column is empty; ``project_batch`` is ``spec.depth_levels[depth_indices(...)]``.
+    """
     pts = np.asarray(points)
     if pts.ndim != 3 or pts.shape[2] != 3:
         raise ValueError(f"points must have shape (T, M, 3), got {pts.shape}")
@@ -171,20 +186,23 @@ def project_batch(
         valid = np.asarray(valid, dtype=bool)
         if valid.shape != (T, M):
             raise ValueError(f"valid must have shape {(T, M)}, got {valid.shape}")
+    kmin = np.full((T, N, N), _EMPTY, np.uint8)
     if M == 0:
-        return np.zeros((T, N, N), np.float32)
-    out = np.empty((T, N, N), np.float32)
-    out_flat = out.reshape(T * N * N)  # a view: `out` is contiguous
+        return kmin
+    kmin_flat = kmin.reshape(T * N * N)  # a view: `kmin` is contiguous
     step = max(1, _CHUNK_POINTS // M)
     for t0 in range(0, T, step):
         frames = slice(t0, t0 + step)
         pixels = slice(t0 * N * N, (t0 + step) * N * N)
-        _project_frames(pts[frames], spec, None if valid is None else valid[frames], out_flat[pixels])
-    return out
+        _project_frames(pts[frames], spec, None if valid is None else valid[frames], kmin_flat[pixels])
+    return kmin
 
 
-def _project_frames(pts: np.ndarray, spec: ProjectionSpec, valid: np.ndarray | None, out: np.ndarray) -> None:
-    """Core of `project_batch` for F frames: (F, M, 3) points -> flat contiguous ``out`` (F * N * N,)."""
+def _project_frames(
+    pts: np.ndarray, spec: ProjectionSpec, valid: np.ndarray | None, kmin: np.ndarray
+) -> None:
+    """Core of `depth_indices` for F frames: (F, M, 3) points -> flat ``kmin`` (F * N * N,) uint8,
+    filled with 255 (empty) on entry; each occupied column gets its smallest depth index."""
     F, M, _ = pts.shape
     N = spec.size
     # Continuous voxel coordinates, one row per axis (so every step is a long 1-D loop):
@@ -209,10 +227,7 @@ def _project_frames(pts: np.ndarray, spec: ProjectionSpec, valid: np.ndarray | N
     if F > 1:
         flat += (idx // M) * (N * N)
     k = ijk[2].astype(np.uint8)  # k < depth / v < 254 (see ProjectionSpec)
-
-    kmin = np.full(F * N * N, _EMPTY, np.uint8)
     np.minimum.at(kmin, flat, k)
-    np.take(spec.depth_levels, kmin, out=out, mode="clip")  # (k + 0.5) v; 0 if empty
 
 
 def project(points: np.ndarray, spec: ProjectionSpec = DEFAULT_SPEC) -> np.ndarray:
@@ -318,4 +333,32 @@ def dequantize(codes: np.ndarray, spec: ProjectionSpec = DEFAULT_SPEC) -> np.nda
     out = np.empty(q.shape, np.float32)
     out[..., DEPTH_CHANNEL, :, :] = dequantize_depth(q[..., DEPTH_CHANNEL, :, :], spec)
     out[..., JAW_CHANNEL, :, :] = q[..., JAW_CHANNEL, :, :].astype(np.float32) / np.float32(255.0)
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _depth_codes(spec: ProjectionSpec) -> np.ndarray:
+    """Read-only uint8 table (256,): ``quantize_depth`` of each entry of ``spec.depth_levels``."""
+    codes = quantize_depth(spec.depth_levels, spec)
+    codes.flags.writeable = False
+    return codes
+
+
+def quantized_observations(
+    points: np.ndarray, jaw: np.ndarray, spec: ProjectionSpec = DEFAULT_SPEC, valid: np.ndarray | None = None
+) -> np.ndarray:
+    """``quantize(observation_channels(project_batch(points, spec, valid), jaw, spec), spec)``, bit for
+    bit, without the float intermediates: (T, M, 3) points and (T,) jaw -> (T, 2, N, N) uint8.
+
+    Every projected pixel is one of 256 values ``depth_levels[k]``, so its code is a table lookup
+    ``quantize_depth(depth_levels)[k]``; the jaw code is computed once per frame and tiled.
+    """
+    kmin = depth_indices(points, spec, valid)
+    jaw32 = np.asarray(jaw, dtype=np.float32)
+    if jaw32.shape != kmin.shape[:1]:
+        raise ValueError(f"jaw must have shape {kmin.shape[:1]}, got {jaw32.shape}")
+    out = np.empty((kmin.shape[0], N_CHANNELS, spec.size, spec.size), np.uint8)
+    np.take(_depth_codes(spec), kmin, out=out[:, DEPTH_CHANNEL])
+    jaw_codes = np.rint(np.clip(jaw32.astype(np.float64), 0.0, 1.0) * 255.0)
+    out[:, JAW_CHANNEL] = jaw_codes[:, None, None]
     return out
