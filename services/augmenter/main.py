@@ -37,7 +37,7 @@ Physics audit (optional, ``--audit-fraction f``)
     A background thread replays a fraction f of the MEA copies through the simulator with
     ``services.augmenter.audit.audit_episode`` (imported lazily, in that thread: it pulls in
     pybullet) and exports the fraction of audited transitions found valid
-    (``mea_augmenter_audit_valid_fraction``). Copies are chosen by a stable hash of their id. The
+    (``mea_augmenter_audit_valid_ratio``). Copies are chosen by a stable hash of their id. The
     audit sees the MEA copy before the shared isometric rotation (regenerated from its recorded
     seed), because a rotated scene has no simulated counterpart. Its queue is bounded and a copy
     that finds it full is not audited (counted), so the audit never slows augmentation.
@@ -229,7 +229,7 @@ class Auditor:
 
     ``audit(copy, source)`` returns the (T,) validity of the copy's transitions; the default is
     :class:`PhysicsAudit`. Tests inject a stub here. The valid fraction (valid / audited
-    transitions, cumulative) is exported as ``mea_augmenter_audit_valid_fraction`` (NaN before the
+    transitions, cumulative) is exported as ``mea_augmenter_audit_valid_ratio`` (NaN before the
     first audit). If the audit cannot be imported or raises, that copy counts as an error.
     """
 
@@ -260,7 +260,7 @@ class Auditor:
             "mea_augmenter_audited_transitions", "Transitions of audited MEA copies, by result.", ["result"]
         )
         self._m_fraction = m.gauge(
-            "mea_augmenter_audit_valid_fraction",
+            "mea_augmenter_audit_valid_ratio",
             "Fraction of audited MEA transitions the physics reproduces (NaN before the first audit).",
         )
         self._m_fraction.set(math.nan)

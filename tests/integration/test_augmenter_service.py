@@ -254,7 +254,7 @@ def test_auditor_picks_a_stable_fraction_counts_errors_and_never_blocks():
     raw = demo(6)
     outputs, _ = augment_episode(raw, AugmentSettings(reproject=False))
     metrics = ServiceMetrics("augmenter", "t")
-    gauge = "mea_augmenter_audit_valid_fraction"
+    gauge = "mea_augmenter_audit_valid_ratio"
     stub = StubAudit(fail_on=f"{raw.episode_id}.mea0")
     auditor = Auditor(1.0, AugmentSettings(), metrics, audit=stub, capacity=2)
     assert math.isnan(metrics.registry.get_sample_value(gauge))

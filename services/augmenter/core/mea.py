@@ -74,8 +74,11 @@ class MeaSettings:
     max_tries: int = 20
     """Draws per step before the augmentation is cut at that step."""
     pivot_low: tuple[float, float, float] = (0.3, -0.2, 0.2)
-    """Lower bounds of the gripper pivot (x, y, z), m: workspace with z = finger tips + 0.19."""
-    pivot_high: tuple[float, float, float] = (0.7, 0.2, 0.44)
+    """Lower bounds of the gripper pivot (x, y, z), m: the workspace, z = finger tips + tip_drop
+    (the live robot: tips in [0.01, 0.25], tip_drop 0.1815, so pivot z in [0.1915, 0.4315])."""
+    # Audit fix: z was 0.44 ("tips + 0.19"), above the live robot's 0.4315 (Robot.pivot_bounds()),
+    # so a copy could claim a pose the controller clips. 0.43 stays inside, as 0.2 does below.
+    pivot_high: tuple[float, float, float] = (0.7, 0.2, 0.43)
     """Upper bounds of the gripper pivot (x, y, z), m."""
     yaw_limit: float = 2.9
     """|yaw| limit (rad) of the wrist."""
@@ -83,7 +86,11 @@ class MeaSettings:
     """Centre of the arm's reach sphere for the pivot (the shoulder, shifted down to the pivot)."""
     reach_radius: float = 0.77
     """Radius of the arm's reach sphere for the pivot (m)."""
-    prior_tolerance: float = 0.002
+    # Audit fix: was 0.002. Settled free motion is within 0.4 mm of a * Delta (the controller stops
+    # within 0.2 mm of each pose; measured p99 0.19 mm), but a step the workspace/reach limits
+    # clipped by less than 2 mm passed as free, and every augmented state before it was off by
+    # the clipped amount (`mea audit`-style replays of random episodes: 1-1.9 mm pivot offsets).
+    prior_tolerance: float = 0.0005
     """Recorded pivot motion may differ from a * Delta by this much (m) and still count as free."""
     yaw_tolerance: float = 0.02
     """Recorded yaw change may differ from a^theta * Delta_theta by this much (rad)."""

@@ -1,0 +1,146 @@
+"""The physics audit of MEA copies: un-augmented replays and real copies pass, wrong copies fail.
+
+One block_pick demonstration (direct style, ~8 steps) is recorded once per module; every replay
+costs ~40 ms per step on one core.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from services.augmenter.audit import (
+    NON_TRIVIAL,
+    AuditTolerance,
+    audit_episode,
+    chamfer_mm,
+    identity_replay,
+    main,
+    record_demos,
+    surface_mm,
+)
+from services.augmenter.core.mea import MeaSettings, augment
+
+pytestmark = pytest.mark.unit
+
+
+@pytest.fixture(scope="module")
+def pick():
+    from services.actor.main import Actor, ActorConfig
+
+    actor = Actor(ActorConfig(task="block_pick", policy="expert", expert_style="direct"), "test-audit")
+    demos, _ = record_demos(actor, 1, 4)
+    assert demos and demos[0].terminated[-1]
+    yield actor.env, demos[0]
+    actor.env.close()
+
+
+def mea_copy(demo, k: int):
+    copy, draw = augment(demo, MeaSettings(), np.random.default_rng([7, k]), seed=7, copy_index=k,
+                         episode_id=f"{demo.episode_id}.mea{k}")  # fmt: skip
+    assert copy is not None and copy.augmentation.phase_split >= 1
+    return copy, draw
+
+
+def with_points(ep, points):
+    return dataclasses.replace(ep, points=points.astype(np.float32))
+
+
+def test_set_distances():
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-0.05, 0.05, (200, 3))
+    zero = pytest.approx(0.0, abs=1e-4)  # mm
+    assert chamfer_mm(a, a) == zero and surface_mm(a, a) == zero
+    assert chamfer_mm(a, a + [0.03, 0, 0]) > 10.0  # mm
+    assert chamfer_mm(a, np.zeros((0, 3))) == np.inf
+    # one-sided: a subset lies on the full cloud, the full cloud does not lie on the subset
+    assert surface_mm(a[:50], a) == zero and surface_mm(a, a[:50]) > 1.0
+
+
+@pytest.mark.timeout(60)
+def test_identity_replay_is_valid_and_reproduces_rewards(pick):
+    env, demo = pick
+    r = identity_replay(env, demo)
+    assert r.valid.all(), (r.chamfer, r.surface, r.jaw_error)
+    assert r.reward_ok.all() and r.terminated_ok.all()
+    # the replay draws its points independently of the recording: sampling noise, not a copy
+    assert (r.chamfer[:, 0] > 1.0).all()
+    assert (r.pivot_error_mm < 1.0).all()
+
+
+@pytest.mark.timeout(60)
+def test_mea_copies_of_a_demo_are_valid(pick):
+    env, demo = pick
+    nontrivial, consistent = [], []
+    for k in range(3):
+        copy, _ = mea_copy(demo, k)
+        r = audit_episode(env, copy, demo)
+        nontrivial.append(r.valid[r.phase == NON_TRIVIAL])
+        consistent.append(r.consistent)
+    valid = np.concatenate(nontrivial)
+    assert len(valid) >= 3 and valid.mean() >= 0.99
+    assert np.concatenate(consistent).all()
+
+
+@pytest.mark.timeout(60)
+def test_objects_shifted_3cm_are_flagged(pick):
+    env, demo = pick
+    copy, _ = mea_copy(demo, 0)
+    n = copy.augmentation.phase_split
+    points = np.array(copy.points, np.float64)
+    points[:n, 1:] += [0.03, 0.0, 0.0]  # objects 3 cm off in every non-trivial start state
+    r = audit_episode(env, with_points(copy, points), demo)
+    assert not r.valid[:n].any()
+    assert (r.chamfer[:n, 1:] > AuditTolerance.for_task("block_pick").object_chamfer_mm).all()
+    assert r.reward_ok.all()  # only the observations are wrong
+
+
+@pytest.mark.timeout(60)
+def test_flipped_object_offset_is_flagged(pick):
+    env, demo = pick
+    copy, draw = mea_copy(demo, 1)
+    n = copy.augmentation.phase_split
+    D = draw.offset_xyz[draw.start : draw.start + n]
+    assert (np.linalg.norm(D, axis=1) > 0.005).any()  # the copy really moves the gripper
+    points = np.array(copy.points, np.float64)
+    points[:n, 1:] += 2 * D[:, None, None, :]  # objects at +D instead of -D
+    r = audit_episode(env, with_points(copy, points), demo)
+    far = np.linalg.norm(2 * D, axis=1) >= 0.01
+    assert far.any() and not r.valid[:n][far].any()
+
+
+@pytest.mark.timeout(60)
+def test_a_few_millimetres_are_resolved_by_the_surface_distance(pick):
+    """Sampling noise hides a 5 mm error from the Chamfer distance of two draws, not from the
+    distance to the simulated surface."""
+    env, demo = pick
+    copy, _ = mea_copy(demo, 2)
+    n = copy.augmentation.phase_split
+    points = np.array(copy.points, np.float64)
+    points[:n, 1:] += [0.0, 0.005, 0.0]
+    r = audit_episode(env, with_points(copy, points), demo)
+    tol = AuditTolerance.for_task("block_pick")
+    assert (r.surface[:n, 1:] > tol.object_surface_mm).all()
+    assert not r.valid[:n].any()
+
+
+@pytest.mark.timeout(60)
+def test_wrong_reward_is_flagged(pick):
+    env, demo = pick
+    rewards = np.array(demo.rewards, copy=True)
+    rewards[-1] = 0.0
+    r = audit_episode(env, dataclasses.replace(demo, rewards=rewards), demo)
+    assert not r.reward_ok[-1] and not r.valid[-1] and r.valid[:-1].all()
+
+
+@pytest.mark.timeout(120)
+def test_cli_prints_one_json_object(capsys):
+    assert main(["--task", "block_pick", "--episodes", "1", "--copies", "1", "--views", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["benchmark"] == "audit" and "MEA only" in out["meta"]["augmentation"]
+    rows = out["results"]["validity of MEA copies per phase"]
+    assert [row["phase"] for row in rows] == ["non_trivial", "trivial", "termination", "all"]
+    assert out["meta"]["tolerance_covers_floor"] is True
