@@ -1,7 +1,7 @@
 """Versioned wire schemas (msgpack) and the topic registry. See proto/README.md."""
 
 from proto.codec import DEFAULT_LIMITS, Limits, Message, ProtocolError, decode
-from proto.control import EvalReport, Heartbeat
+from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
 from proto.weights import WeightsAnnouncement, WeightsBlob, tensors_digest
 
@@ -14,6 +14,7 @@ __all__ = [
     "Limits",
     "Message",
     "ProtocolError",
+    "ReplayGate",
     "WeightsAnnouncement",
     "WeightsBlob",
     "decode",

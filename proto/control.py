@@ -1,4 +1,4 @@
-"""Service status heartbeats and evaluation reports."""
+"""Service status heartbeats, the learner's replay gate, and evaluation reports."""
 
 from __future__ import annotations
 
@@ -47,3 +47,26 @@ class EvalReport(Message):
     mean_length: float = spec(Float(0.0), "mean episode length (steps)")
     grasp_score: float = spec(Float(0.0, 1.0), "mean s_g = (H_max - H) / H_max on success, 0 on failure")
     created_at: float = spec(Float(0.0), "UNIX time (s) of the report")
+
+
+@dataclass(frozen=True)
+class ReplayGate(Message):
+    """The learner's sample-to-insert limiter, as producers see it: may more env steps come now?
+
+    Actors publish a new (non-demonstration) episode only while ``inserted_steps < allowed_steps``;
+    otherwise they wait for a newer gate. The learner publishes it about twice a second and whenever
+    the allowance changes from zero to positive."""
+
+    TYPE = "ReplayGate"
+    VERSION = 1
+
+    learner_id: str = spec(Str(pattern=ID_PATTERN), "learner instance id")
+    run_id: str = spec(Str(pattern=ID_PATTERN), "training run id")
+    inserted_steps: int = spec(
+        Int(0, 2**62), "raw env steps the learner has inserted (augmented copies not counted)"
+    )
+    allowed_steps: int = spec(Int(0, 2**62), "inserted steps the limiter allows before producers must wait")
+    updates: int = spec(Int(0, 2**62), "gradient updates done")
+    policy_version: int = spec(Int(-1, 2**62), "latest weights version published")
+    replay_transitions: int = spec(Int(0, 2**62), "transitions stored (raw and augmented)")
+    created_at: float = spec(Float(0.0), "UNIX time (s) of this gate")

@@ -11,7 +11,7 @@ import re
 from dataclasses import dataclass
 
 from proto.codec import Message
-from proto.control import EvalReport, Heartbeat
+from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.episode import Episode
 from proto.weights import WeightsAnnouncement, WeightsBlob
 
@@ -106,6 +106,14 @@ EVAL_REPORTS = Topic(
     _DATA,
     "evaluation results from evaluator `source`",
 )
+REPLAY_GATE = Topic(
+    "replay_gate",
+    "learner/gate/{source}",
+    Kind.PUBSUB,
+    ReplayGate,
+    QoS(Congestion.BLOCK, Priority.INTERACTIVE_LOW),
+    "the learner's insert allowance (sample-to-insert limiter); actors wait while it is used up",
+)
 STATUS = Topic(
     "status",
     "status/{service}/{instance}",
@@ -129,6 +137,7 @@ TOPICS: tuple[Topic, ...] = (
     WEIGHTS_ANNOUNCE,
     WEIGHTS_LATEST,
     EVAL_REPORTS,
+    REPLAY_GATE,
     STATUS,
     ALIVE,
 )

@@ -2,9 +2,15 @@
 
 Policy sources: `expert` (scripted demonstrations, probe/direct styles), `random` (uniform actions,
 as Equi-RSAC's warm-up episodes), `learned` (the latest broadcast weights, pulled between episodes
-only when newer). With `--demos N` the actor first records N successful expert demonstrations.
+only when newer; stochastic actions, recurrent state carried through the episode). With
+`--demos N` the actor first records N successful expert demonstrations.
 Seeds: actor `index` i uses seed_base + i * 1e6 + k for its k-th episode; evaluation seeds live at
 1e9 and above, so training never sees them.
+
+Replay gate: after its demonstrations, an actor starts a new episode only while the learner's
+latest ``ReplayGate`` (fresher than ``--gate-timeout``) still allows env steps; otherwise it waits
+(``mea_actor_gate_wait_seconds_total``). With no learner (no gate seen) it does not wait. Each
+actor can overshoot the allowance by at most the episode it already started.
 """
 
 from __future__ import annotations
@@ -17,11 +23,15 @@ from pathlib import Path
 
 import numpy as np
 
-from proto.topics import EPISODES_RAW
+from proto.control import ReplayGate
+from proto.topics import EPISODES_RAW, REPLAY_GATE
 from services.actor.episodes import EpisodeBuilder
 from services.actor.tasks import EXPERT_STYLES, TASKS, EnvSettings, ManipulationEnv, make_env
 from services.actor.tasks.camera import CameraSettings
+from services.actor.tasks.env import Observation
+from services.augmenter.core.projection import DEFAULT_SPEC, quantized_observations, segments_to_points
 from services.common import config
+from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
 from services.common.runtime import ServiceContext
 from services.common.weights import WeightsClient
@@ -55,6 +65,10 @@ class ActorConfig:
     """Points per segment in each observation."""
     max_demo_attempts: int = 4
     """Expert attempts per requested demonstration before giving up (only successes count)."""
+    follow_gate: bool = True
+    """Wait while the learner's replay gate says its update budget is used up (demos never wait)."""
+    gate_timeout: float = 10.0
+    """A gate older than this (s) is ignored (learner gone): the actor runs on."""
     service: ServiceConfig = ServiceConfig()
     """Identity, transport, metrics and logs."""
 
@@ -77,6 +91,44 @@ PRESETS = {"default": ActorConfig()}
 
 def expert_style(cfg_style: str, k: int) -> str:
     return cfg_style if cfg_style != "alternate" else EXPERT_STYLES[k % 2]
+
+
+def policy_image(obs: Observation) -> np.ndarray:
+    """The learned policy's input for one observation: voxel projection + jaw, uint8 (2, 84, 84),
+    bit-identical to what the augmenter attaches to stored episodes."""
+    points, valid = segments_to_points(obs.points[None], obs.point_counts[None])
+    return quantized_observations(points, np.array([obs.jaw], np.float32), DEFAULT_SPEC, valid)[0]
+
+
+class GateFollower:
+    """Tracks the learner's latest ``ReplayGate`` and waits while its allowance is used up."""
+
+    def __init__(self, bus: Bus, stale_after: float) -> None:
+        self.sub = bus.subscribe(REPLAY_GATE, capacity=16)
+        self.stale_after = stale_after
+        self.latest: ReplayGate | None = None
+        self.seen_at = 0.0
+
+    def _drain(self) -> None:
+        for d in self.sub.drain():
+            if self.latest is None or d.message.created_at >= self.latest.created_at:
+                self.latest, self.seen_at = d.message, time.monotonic()
+
+    def blocked(self) -> bool:
+        self._drain()
+        if self.latest is None or time.monotonic() - self.seen_at > self.stale_after:
+            return False
+        return self.latest.inserted_steps >= self.latest.allowed_steps
+
+    def wait(self, stop) -> float:
+        """Wait until the gate opens (or goes stale, or ``stop`` is set); returns seconds waited."""
+        t0 = time.monotonic()
+        while self.blocked() and not stop.wait(0.05):
+            pass
+        return time.monotonic() - t0
+
+    def close(self) -> None:
+        self.sub.close()
 
 
 def run_episode(
@@ -135,6 +187,21 @@ class Actor:
         return run_episode(self.env, seed, lambda _o: self.rng.uniform(-1, 1, 5), self.builder(seed, "random", -1, False),
                            on_step)  # fmt: skip
 
+    def learned_episode(self, policy, on_step=None) -> EpisodeBuilder:
+        """One episode with a ``PolicyRuntime`` (stochastic; its recurrent state starts afresh)."""
+        seed = self.next_seed()
+        policy.reset()
+        return run_episode(self.env, seed, lambda o: policy.act(policy_image(o)),
+                           self.builder(seed, "learned", policy.version, False), on_step)  # fmt: skip
+
+    def policy_episode(self, k: int, policy=None, on_step=None) -> EpisodeBuilder:
+        """Episode k after the demonstrations, with the configured policy source."""
+        if self.cfg.policy == "expert":
+            return self.expert_episode(k, on_step)
+        if self.cfg.policy == "learned":
+            return self.learned_episode(policy, on_step)
+        return self.random_episode(on_step)
+
     def episode_id(self, b: EpisodeBuilder) -> str:
         return f"{self.instance}-{b.meta['seed']}-{self.counter}"
 
@@ -160,20 +227,38 @@ def _metrics(ctx: ServiceContext):
         "failed_demos": m.counter(
             "mea_actor_failed_demos", "Expert attempts that failed (not published as demos)."
         ),
+        "gate_wait": m.counter(
+            "mea_actor_gate_wait_seconds", "Time spent waiting for the learner's replay gate to open."
+        ),
+        "bad_weights": m.counter("mea_actor_bad_weights", "Weights versions that could not be loaded."),
     }
 
 
+def _load_weights(weights: WeightsClient, policy, mx) -> None:
+    """Pull a newer version if one was announced; a blob that does not fit is counted and skipped."""
+    blob = weights.poll()
+    if blob is None:
+        return
+    try:
+        policy.load(blob)
+    except ValueError as exc:
+        mx["bad_weights"].inc()
+        log.error("weights not loaded", extra={"version": blob.version, "error": str(exc)[:300]})
+
+
 def run(cfg: ActorConfig, bus_factory=None) -> int:
-    if cfg.policy == "learned":
-        raise SystemExit(
-            "mea actor: the learned policy needs the learner's policy runtime (not in this build)"
-        )
     counts = {"env_steps": 0, "episodes": 0, "successes": 0}
     kwargs = {"bus_factory": bus_factory} if bus_factory else {}
     with ServiceContext("actor", cfg.service, counters=lambda: counts, index=cfg.index, **kwargs) as ctx:
         actor = Actor(cfg, ctx.instance)
         mx = _metrics(ctx)
         weights = WeightsClient(ctx.bus) if cfg.policy == "learned" else None
+        gate = GateFollower(ctx.bus, cfg.gate_timeout) if cfg.follow_gate else None
+        policy = None
+        if cfg.policy == "learned":
+            from services.learner.core.policy import PolicyRuntime  # torch: only for learned actors
+
+            policy = PolicyRuntime(deterministic=False, seed=cfg.seed_base + cfg.index * SEED_STRIDE)
 
         def on_step(seconds: float) -> None:
             counts["env_steps"] += 1
@@ -206,12 +291,20 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
             log.warning("fewer demonstrations than requested", extra={"demos": demos, "requested": cfg.demos})
         k = 0
         while (cfg.episodes == 0 or k < cfg.episodes) and not ctx.shutdown.is_set():
+            if gate is not None:
+                mx["gate_wait"].inc(gate.wait(ctx.shutdown))
             if weights is not None:
-                weights.poll()
-                ctx.policy_version = weights.version
-            b = actor.expert_episode(k, on_step) if cfg.policy == "expert" else actor.random_episode(on_step)
-            publish(b)
+                _load_weights(weights, policy, mx)
+                if not policy.ready:  # no weights yet: wait for the learner's first version
+                    ctx.shutdown.wait(0.2)
+                    continue
+                ctx.policy_version = policy.version
+            if ctx.shutdown.is_set():
+                break
+            publish(actor.policy_episode(k, policy, on_step))
             k += 1
+        if gate is not None:
+            gate.close()
         actor.env.close()
     return 0
 

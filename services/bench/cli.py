@@ -20,6 +20,11 @@ BENCHES: dict[str, tuple[str, str, str]] = {
         "AugmentBenchConfig",
         "augmented transitions/s per core including re-projection, and raw-in to augmented-out latency",
     ),
+    "learner": (
+        "services.bench.learner",
+        "LearnerBenchConfig",
+        "gradient updates/s per preset, replay memory, weights publish -> loaded latency",
+    ),
     "tasks": (
         "services.bench.tasks",
         "TasksBenchConfig",

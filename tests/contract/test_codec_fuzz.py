@@ -23,7 +23,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from proto.codec import EXT_NDARRAY, Message, ProtocolError, decode, pack
-from proto.control import EvalReport, Heartbeat
+from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
 from proto.weights import WeightsBlob
 
@@ -121,6 +121,18 @@ def seed_messages() -> list[Message]:
             created_at=3.0,
         )
     )
+    out.append(
+        ReplayGate(
+            learner_id="learner-0",
+            run_id="run-1",
+            inserted_steps=500,
+            allowed_steps=600,
+            updates=450,
+            policy_version=12,
+            replay_transitions=5500,
+            created_at=4.0,
+        )
+    )
     return out
 
 
@@ -131,7 +143,7 @@ SEED_BYTES = [m.encode() for m in SEEDS]
 def test_seed_messages_cover_every_type_and_decode() -> None:
     assert {m.TYPE for m in SEEDS} >= {"Episode", "WeightsBlob", "WeightsAnnouncement"}
     assert any(m.TYPE == "Episode" and m.augmentation is not None for m in SEEDS)
-    assert {m.TYPE for m in SEEDS} >= {"Heartbeat", "EvalReport"}
+    assert {m.TYPE for m in SEEDS} >= {"Heartbeat", "EvalReport", "ReplayGate"}
     for data in SEED_BYTES:
         assert decode(data).encode() == data
 

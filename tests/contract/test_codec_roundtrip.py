@@ -45,7 +45,7 @@ from proto.codec import (
     pack,
     unpack,
 )
-from proto.control import SERVICES, STATES, EvalReport, Heartbeat
+from proto.control import SERVICES, STATES, EvalReport, Heartbeat, ReplayGate
 from proto.episode import ACTION_DIM, AUGMENTATION_KINDS, POLICY_KINDS, TASKS, Augmentation, Episode
 from proto.weights import ALGORITHMS, WeightsAnnouncement, WeightsBlob, tensors_digest
 
@@ -259,6 +259,20 @@ def gen_eval_report(rng: np.random.Generator) -> EvalReport:
     )
 
 
+def gen_replay_gate(rng: np.random.Generator) -> ReplayGate:
+    inserted = int(rng.integers(0, 2**40))
+    return ReplayGate(
+        learner_id=rand_id(rng),
+        run_id=rand_id(rng),
+        inserted_steps=inserted,
+        allowed_steps=inserted + int(rng.integers(0, 1000)),
+        updates=int(rng.integers(0, 2**40)),
+        policy_version=int(rng.integers(-1, 2**40)),
+        replay_transitions=int(rng.integers(0, 2**40)),
+        created_at=rand_time(rng),
+    )
+
+
 GENERATORS: dict[str, Callable[[np.random.Generator], Message]] = {
     "Augmentation": gen_augmentation,
     "Episode": gen_episode,
@@ -266,6 +280,7 @@ GENERATORS: dict[str, Callable[[np.random.Generator], Message]] = {
     "WeightsBlob": gen_weights_blob,
     "Heartbeat": gen_heartbeat,
     "EvalReport": gen_eval_report,
+    "ReplayGate": gen_replay_gate,
 }
 
 
@@ -404,6 +419,7 @@ STRATEGIES: dict[str, st.SearchStrategy] = {
     "WeightsBlob": weights_blob_strategy(),
     "Heartbeat": message_strategy(Heartbeat),
     "EvalReport": message_strategy(EvalReport),
+    "ReplayGate": message_strategy(ReplayGate),
 }
 
 
@@ -431,6 +447,7 @@ def test_every_registered_type_has_generators() -> None:
         "WeightsBlob",
         "Heartbeat",
         "EvalReport",
+        "ReplayGate",
     }
     assert not registered - set(GENERATORS), (
         f"no seeded round-trip generator for {sorted(registered - set(GENERATORS))}"

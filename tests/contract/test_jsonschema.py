@@ -22,7 +22,7 @@ import pytest
 
 import proto
 from proto.codec import Arr, Message, Opt, ProtocolError, decode, field_table, pack
-from proto.control import EvalReport, Heartbeat
+from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
 from proto.jsonschema import DIALECT, NDARRAY_KEYWORD, json_schema, json_schema_text
 from proto.weights import WeightsBlob
@@ -91,6 +91,18 @@ SAMPLES: dict[str, Callable[[], list[Message]]] = {
             mean_return=-1.5,
             mean_length=47,  # ints are valid numbers
             grasp_score=0.0,
+            created_at=1_700_000_000.0,
+        )
+    ],
+    "ReplayGate": lambda: [
+        ReplayGate(
+            learner_id="learner-0",
+            run_id="run-0",
+            inserted_steps=100,
+            allowed_steps=150,
+            updates=90,
+            policy_version=-1,
+            replay_transitions=1100,
             created_at=1_700_000_000.0,
         )
     ],

@@ -19,6 +19,7 @@ from proto.topics import (
     EPISODES_RAW,
     EVAL_REPORTS,
     PREFIX,
+    REPLAY_GATE,
     STATUS,
     TOPICS,
     WEIGHTS_ANNOUNCE,
@@ -100,6 +101,7 @@ def test_topics_are_distinct() -> None:
         (WEIGHTS_ANNOUNCE, "default", "mea/v1/default/weights/announce/*"),
         (WEIGHTS_LATEST, "default", "mea/v1/default/weights/latest/*"),
         (EVAL_REPORTS, "default", "mea/v1/default/eval/reports/*"),
+        (REPLAY_GATE, "default", "mea/v1/default/learner/gate/*"),
         (STATUS, "run-1", "mea/v1/run-1/status/*/*"),
         (ALIVE, "default", "mea/v1/default/alive/*/*"),
     ],
@@ -115,6 +117,7 @@ def test_every_topic_has_a_pattern_test() -> None:
         WEIGHTS_ANNOUNCE,
         WEIGHTS_LATEST,
         EVAL_REPORTS,
+        REPLAY_GATE,
         STATUS,
         ALIVE,
     }
@@ -204,6 +207,7 @@ def test_message_type_per_topic() -> None:
         "weights_announce": "WeightsAnnouncement",
         "weights_latest": "WeightsBlob",
         "eval_reports": "EvalReport",
+        "replay_gate": "ReplayGate",
         "status": "Heartbeat",
     }
     assert {t.name: t.message.TYPE for t in TOPICS if t.message is not None} == expected

@@ -1,0 +1,251 @@
+"""`mea bench learner`: gradient updates per second per preset, replay size, weights publish -> loaded.
+
+Three measurements on this machine (CPU, torch's default threads unless ``--threads``):
+
+1. **Updates**: for each preset (default ``paper`` C4 and D4, ``cpu-small`` C4, the non-equivariant
+   ``paper`` twin), a replay filled with random 50-step episodes (uint8 policy images, as the
+   augmenter sends them) and the real update: sample a batch of whole episodes, build tensors,
+   critic + actor + alpha steps, soft target update. One warm-up update, then ``--updates`` timed
+   ones; the median is the figure. The ``paper`` C4 row is the one compared with the public code's
+   11.1 s per update (batch 32 x 50 steps, equivariant, 2 threads).
+2. **Replay memory** for 1e5 transitions (reserved bytes, computed for the real layout, and checked
+   against an allocated buffer of the same layout at a smaller capacity).
+3. **Weights latency**: a Zenoh router in this process on a free 127.0.0.1 port, the learner's
+   ``WeightsServer`` in this process, and ``--consumers`` consumer processes (spawned clients) that
+   poll their ``WeightsClient`` every millisecond and rebuild the actor in a ``PolicyRuntime``. The
+   latency of a version runs from ``WeightsBlob.create`` (export of the trained actor included) to
+   the consumer's first action with it; per preset, ``--versions`` versions, one at a time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing as mp
+import platform
+import statistics
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from proto.episode import Episode
+from proto.weights import WeightsBlob
+from services.bench.report import emit
+from services.bench.transport import _client_bus, _get, _pct, _stop, _wait_alive, free_port
+from services.learner.core.batch import to_batch
+from services.learner.core.networks import NetConfig, build_actor, build_critic
+from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
+from services.learner.core.replay import SequenceReplay, public_reference_bytes
+from services.learner.core.sac import RecurrentSAC, SacSettings
+from services.learner.main import PRESETS as LEARNER_PRESETS
+
+CONSUMER = "bench-consumer"
+
+
+@dataclass(frozen=True)
+class LearnerBenchConfig:
+    """Learner benchmark: updates/s per preset, replay bytes, weights publish -> loaded latency."""
+
+    variants: tuple[str, ...] = ("paper:c4", "paper:d4", "paper:none", "cpu-small:c4")
+    """preset:group pairs to time (preset sets widths and batch size; group c4, d4 or none)."""
+    updates: int = 3
+    """Timed updates per variant (after one warm-up update)."""
+    episodes: int = 64
+    """Random 50-step episodes in the replay the batches are drawn from."""
+    threads: int = 0
+    """torch intra-op threads (0: torch's default, 2 on the project's machines)."""
+    consumers: int = 2
+    """Consumer processes pulling each weights version."""
+    versions: int = 20
+    """Weights versions published per latency measurement."""
+    latency_presets: tuple[str, ...] = ("paper", "cpu-small")
+    """Presets whose actor weights are timed from publish to loaded."""
+    seed: int = 0
+    json: bool = False
+    """Print exactly one JSON object instead of tables."""
+
+
+def _log(msg: str) -> None:
+    print(f"[bench learner] {msg}", file=sys.stderr, flush=True)
+
+
+def random_episode(rng: np.random.Generator, k: int, T: int = 50) -> Episode:
+    """A raw 50-step episode with uint8 policy images (depth codes + a constant jaw code)."""
+    images = rng.integers(0, 256, (T + 1, 2, 84, 84), dtype=np.uint8)
+    images[:, 1] = rng.integers(0, 256, (T + 1, 1, 1), dtype=np.uint8)
+    S, P = 3, 4
+    ends = np.zeros(T, bool)
+    ends[-1] = True
+    return Episode(
+        episode_id=f"bench-{k}", task="block_pull", seed=k, actor_id="bench", policy_version=-1,
+        policy_kind="random", is_demo=False, created_at=1.0, segments=["gripper", "object_0", "object_1"],
+        points=np.zeros((T + 1, S, P, 3), np.float32), point_counts=np.full((T + 1, S), P, np.int32),
+        jaw=np.ones(T + 1, np.float32), actions=rng.uniform(-1, 1, (T, 5)).astype(np.float32),
+        rewards=np.zeros(T, np.float32), terminated=np.zeros(T, bool), truncated=ends,
+        gripper_pose=np.zeros((T + 1, 4), np.float32), object_poses=np.zeros((T + 1, S - 1, 7), np.float32),
+        contacts=np.zeros((T + 1, S - 1), bool), images=images,
+    )  # fmt: skip
+
+
+def variant_net(variant: str) -> tuple[str, NetConfig, int]:
+    preset, _, group = variant.partition(":")
+    if preset not in LEARNER_PRESETS:
+        raise ValueError(f"unknown preset {preset!r} in {variant!r}; choose from {sorted(LEARNER_PRESETS)}")
+    lc = LEARNER_PRESETS[preset]
+    return preset, dataclasses.replace(lc.net, group=group or lc.net.group), lc.batch_size
+
+
+def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
+    rng = np.random.default_rng(cfg.seed)
+    replay = SequenceReplay(cfg.episodes * 50, seq_len=50, seed=cfg.seed)
+    for k in range(cfg.episodes):
+        replay.insert(random_episode(rng, k))
+    rows = []
+    for variant in cfg.variants:
+        preset, net, batch_size = variant_net(variant)
+        torch.manual_seed(cfg.seed)
+        sac = RecurrentSAC(build_actor(net), build_critic(net), SacSettings())
+        sample_s, update_s = [], []
+        for i in range(cfg.updates + 1):
+            t0 = time.perf_counter()
+            batch = to_batch(replay.sample(batch_size, rng))
+            t1 = time.perf_counter()
+            sac.update(batch)
+            t2 = time.perf_counter()
+            if i:  # the first update warms up allocators and kernels
+                sample_s.append(t1 - t0)
+                update_s.append(t2 - t0)
+        per_update = statistics.median(update_s)
+        _log(f"{variant}: {per_update:.3f} s/update")
+        rows.append({
+            "variant": variant, "group": net.group, "batch (episodes x 50)": batch_size,
+            "params (actor + critic)": sum(p.numel() for m in (sac.actor, sac.critic) for p in m.parameters()),
+            "s/update (median)": per_update, "s/update (min)": min(update_s), "updates/s": 1.0 / per_update,
+            "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),
+        })  # fmt: skip
+    return rows
+
+
+def bench_replay() -> list[dict[str, Any]]:
+    ours = SequenceReplay.reserved_bytes(100_000)
+    public = public_reference_bytes(100_000)
+    small = SequenceReplay(2_000)
+    return [{
+        "capacity (transitions)": 100_000, "ours bytes": ours, "public layout bytes": public,
+        "ratio": public / ours, "allocated == computed (2k buffer)": small.nbytes == SequenceReplay.reserved_bytes(2_000),
+    }]  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# weights latency
+# --------------------------------------------------------------------------------------------
+
+
+def consumer_main(endpoint: str, instance: str, results) -> None:
+    """Poll for newer weights every millisecond; load each into a PolicyRuntime and act once."""
+    bus = None
+    try:
+        from services.common.weights import WeightsClient
+
+        torch.set_num_threads(1)
+        bus = _client_bus(endpoint)
+        client = WeightsClient(bus, timeout=10.0)
+        bus.declare_alive(CONSUMER, instance)
+        runtime = PolicyRuntime(deterministic=True)
+        image = np.zeros((2, 84, 84), np.uint8)
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline:
+            blob = client.poll()
+            if blob is None:
+                time.sleep(0.001)
+                continue
+            if blob.config_json == "stop":
+                break
+            runtime.load(blob)
+            runtime.reset()
+            runtime.act(image)
+            results.put(("loaded", instance, blob.version, time.time()))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises
+        results.put(("error", repr(exc)))
+    finally:
+        if bus is not None:
+            bus.close()
+
+
+def bench_weights(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
+    from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
+    from services.common.weights import WeightsServer
+
+    ctx = mp.get_context("spawn")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = server_bus = None
+    procs, rows = [], []
+    try:
+        router = ZenohBus(ZenohConfig(mode="router", listen=(endpoint,), connect=()))
+        server_bus = _client_bus(endpoint)
+        server = WeightsServer(server_bus, "learner-bench")
+        results = ctx.Queue()
+        watch = server_bus.watch_alive(CONSUMER)
+        names = [f"consumer-{i}" for i in range(cfg.consumers)]
+        for name in names:
+            p = ctx.Process(target=consumer_main, args=(endpoint, name, results), name=name, daemon=True)
+            p.start()
+            procs.append(p)
+        for p, name in zip(procs, names, strict=True):
+            _wait_alive(watch, (CONSUMER, name), p, 60.0)
+        version = -1
+        for preset in cfg.latency_presets:
+            spec = PolicySpec(LEARNER_PRESETS[preset].net)
+            actor = build_actor(spec.net)
+            latencies, sizes = [], []
+            for _ in range(cfg.versions):
+                version += 1
+                blob = WeightsBlob.create(version, "equi_rsac", "bench", actor_tensors(actor), spec.to_json())
+                sizes.append(server.publish(blob))
+                for _ in names:
+                    item = _get(results, procs[0], 60.0)
+                    if item[2] != version:
+                        raise RuntimeError(f"consumer loaded version {item[2]}, expected {version}")
+                    latencies.append(item[3] - blob.created_at)
+            rows.append({
+                "preset": preset, "actor params": sum(p.numel() for p in actor.parameters()),
+                "blob bytes": sizes[0], "consumers": cfg.consumers, "versions": cfg.versions,
+                "publish -> loaded p50 ms": 1e3 * _pct(latencies, 50), "p99 ms": 1e3 * _pct(latencies, 99),
+                "max ms": 1e3 * max(latencies),
+            })  # fmt: skip
+            _log(f"weights {preset}: p50 {rows[-1]['publish -> loaded p50 ms']:.1f} ms")
+        version += 1
+        stop = WeightsBlob.create(version, "equi_rsac", "bench", {"x": np.zeros(1, np.float32)}, "stop")
+        server.publish(stop)
+        for p in procs:
+            p.join(timeout=10)
+    finally:
+        for p in procs:
+            _stop(p)
+        if server_bus is not None:
+            server_bus.close()
+        if router is not None:
+            router.close()
+    return rows
+
+
+def run(cfg: LearnerBenchConfig) -> dict:
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    started = time.monotonic()
+    sections = {"gradient updates": bench_updates(cfg), "replay memory": bench_replay()}
+    sections["weights publish -> loaded by consumers"] = bench_weights(cfg) if cfg.consumers > 0 else []
+    paper = next((r for r in sections["gradient updates"] if r["variant"] in ("paper:c4", "paper")), None)
+    measured = {
+        "update_seconds": paper["s/update (median)"] if paper else None,
+        "replay_bytes_per_1e5": float(sections["replay memory"][0]["ours bytes"]),
+    }
+    meta = {
+        "torch": torch.__version__, "threads": torch.get_num_threads(), "python": platform.python_version(),
+        "cpu": platform.processor() or platform.machine(), "seconds": round(time.monotonic() - started, 1),
+        "batches": "random uint8 policy images (84x84, 2 channels), 50-step episodes, whole-episode batches",
+    }  # fmt: skip
+    return emit("learner", sections, measured=measured, as_json=cfg.json, meta=meta)

@@ -1,0 +1,1 @@
+"""Learner: Equi-RSAC (recurrent SAC, C4/D4-equivariant) trained from sequence replay."""

@@ -1,0 +1,107 @@
+"""Atomic learner checkpoints, loaded without unpickling arbitrary objects.
+
+One file, ``<run_dir>/checkpoints/learner.pt``, holds everything a resumed learner needs: networks,
+optimisers, log alpha, replay contents, rate-limiter state, counters, RNG states and the weights
+version/run id (the version lineage). It is written with ``torch.save`` to a temporary file in the
+same directory, fsynced, then renamed over the previous one (``os.replace`` is atomic on POSIX):
+a crash mid-write leaves the previous checkpoint intact. The previous file is kept as
+``learner.prev.pt`` so one bad disk block does not lose the run.
+
+Loading uses ``torch.load(weights_only=True)``: only tensors, numbers, strings, lists and dicts can
+come back, never arbitrary Python objects. Numpy arrays (replay) travel as tensors and numpy's RNG
+state as a JSON string.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+FILE = "learner.pt"
+PREVIOUS = "learner.prev.pt"
+FORMAT = 1
+
+
+def _to_torch(x: Any) -> Any:
+    if isinstance(x, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(x))
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, dict):
+        return {k: _to_torch(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_to_torch(v) for v in x]
+    return x
+
+
+def _to_numpy(x: Any) -> Any:
+    if isinstance(x, torch.Tensor):
+        return x.numpy()
+    if isinstance(x, dict):
+        return {k: _to_numpy(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_to_numpy(v) for v in x]
+    return x
+
+
+def rng_state(np_rng: np.random.Generator) -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": json.dumps(np_rng.bit_generator.state)}
+
+
+def restore_rng(state: dict, np_rng: np.random.Generator) -> None:
+    torch.set_rng_state(state["torch"])
+    np_rng.bit_generator.state = json.loads(state["numpy"])
+
+
+def save(directory: Path, *, learner: dict, replay: dict, meta: dict) -> Path:
+    """Write a checkpoint atomically. ``learner`` holds tensors (state dicts), ``replay`` numpy arrays
+    and plain values, ``meta`` JSON-able values (version, run id, counters, config)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    path, tmp = directory / FILE, directory / f".{FILE}.tmp"
+    payload = {"format": FORMAT, "learner": learner, "replay": _to_torch(replay), "meta": json.dumps(meta)}
+    with open(tmp, "wb") as f:
+        torch.save(payload, f)
+        f.flush()
+        os.fsync(f.fileno())
+    if path.exists():
+        os.replace(path, directory / PREVIOUS)
+    os.replace(tmp, path)
+    dir_fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+    return path
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, unreadable or of another format."""
+
+
+def load(directory: Path) -> tuple[dict, dict, dict]:
+    """(learner state, replay state as numpy, meta); falls back to the previous file if the newest is
+    unreadable."""
+    errors = []
+    for name in (FILE, PREVIOUS):
+        path = directory / name
+        if not path.exists():
+            continue
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+            if payload.get("format") != FORMAT:
+                raise CheckpointError(f"{path}: format {payload.get('format')!r}, expected {FORMAT}")
+            return payload["learner"], _to_numpy(payload["replay"]), json.loads(payload["meta"])
+        except Exception as exc:  # noqa: BLE001 - report every candidate, then give up
+            errors.append(f"{path}: {exc}")
+    if not errors:
+        raise CheckpointError(f"no checkpoint in {directory}")
+    raise CheckpointError("; ".join(errors))
+
+
+def exists(directory: Path) -> bool:
+    return (directory / FILE).exists() or (directory / PREVIOUS).exists()

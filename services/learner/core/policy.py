@@ -1,0 +1,102 @@
+"""Policy runtime: the actor network rebuilt from broadcast weights, stepped one observation at a time.
+
+Used by actors (stochastic, exploring) and the evaluator (deterministic: tanh of the mean). The
+recurrent state and the previous action are carried across an episode and cleared by ``reset``.
+Weights arrive as a ``WeightsBlob`` (tensors by name, no pickle) whose ``config_json`` names the
+network configuration and the observation the policy expects, so a consumer needs nothing else.
+
+Policy input: uint8 image codes (C, H, W) as stored in replay, scaled by 1/255 (see
+``images_from_codes``); the learner trains on exactly the same mapping.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from proto.weights import WeightsBlob
+from services.learner.core.networks import Actor, NetConfig, build_actor
+from services.learner.core.sac import deterministic_action, tanh_gaussian_sample
+
+OBSERVATIONS = ("voxel", "depth")
+"""`voxel`: the voxel orthographic projection (EquiObs, MEA); `depth`: the rendered depth image (Equi-RSAC)."""
+
+
+def images_from_codes(codes: torch.Tensor) -> torch.Tensor:
+    """uint8 codes (..., C, H, W) -> float32 network input in [0, 1]."""
+    return codes.to(torch.float32).mul_(1.0 / 255.0)
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """What a consumer needs to rebuild and feed the policy; travels as the blob's ``config_json``."""
+
+    net: NetConfig
+    observation: str = "voxel"
+
+    def to_json(self) -> str:
+        return json.dumps({"net": self.net.to_dict(), "observation": self.observation}, sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> PolicySpec:
+        try:
+            d = json.loads(text)
+            spec = cls(net=NetConfig.from_dict(d["net"]), observation=d.get("observation", "voxel"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"weights config_json is not a policy spec: {exc}") from exc
+        if spec.observation not in OBSERVATIONS:
+            raise ValueError(f"observation must be one of {OBSERVATIONS}, not {spec.observation!r}")
+        return spec
+
+
+def actor_tensors(actor: Actor) -> dict[str, np.ndarray]:
+    """The actor's parameters and buffers as numpy arrays (what a WeightsBlob carries)."""
+    return {k: v.detach().cpu().numpy().copy() for k, v in actor.state_dict().items()}
+
+
+class PolicyRuntime:
+    def __init__(self, deterministic: bool = False, seed: int = 0) -> None:
+        self.deterministic = deterministic
+        self.generator = torch.Generator().manual_seed(seed)
+        self.actor: Actor | None = None
+        self.spec: PolicySpec | None = None
+        self.version = -1
+        self._state = None
+        self._prev = torch.zeros(1, 5)
+
+    def load(self, blob: WeightsBlob) -> None:
+        """Rebuild (if the spec changed) and load the blob's tensors; raises ValueError if they do not fit."""
+        spec = PolicySpec.from_json(blob.config_json)
+        actor = self.actor if spec == self.spec and self.actor is not None else build_actor(spec.net)
+        state = {k: torch.from_numpy(np.array(v)) for k, v in blob.tensors.items()}
+        try:
+            actor.load_state_dict(state, strict=True)
+        except RuntimeError as exc:
+            raise ValueError(f"weights v{blob.version} do not fit the network: {exc}") from exc
+        actor.eval()
+        self.actor, self.spec, self.version = actor, spec, blob.version
+
+    @property
+    def ready(self) -> bool:
+        return self.actor is not None
+
+    def reset(self) -> None:
+        self._state = None
+        self._prev = torch.zeros(1, 5)
+
+    @torch.no_grad()
+    def act(self, image_codes: np.ndarray) -> np.ndarray:
+        """One action (5,) in [-1, 1] for uint8 image codes (C, H, W); carries the recurrent state."""
+        if self.actor is None:
+            raise RuntimeError("no weights loaded")
+        x = images_from_codes(torch.from_numpy(np.ascontiguousarray(image_codes))[None])
+        mean, log_std, self._state = self.actor.step(x, self._prev, self._state)
+        if self.deterministic:
+            a = deterministic_action(mean)
+        else:
+            a, _ = tanh_gaussian_sample(mean, log_std, generator=self.generator)
+        self._prev = a
+        return a[0].numpy().astype(np.float32)

@@ -1,0 +1,256 @@
+"""Recurrent SAC (Equi-RSAC's algorithm) as pure loss functions over whole padded episodes.
+
+Shapes: B episodes padded to L transitions. ``images`` has L+1 observations per episode (the next
+observation of step t is observation t+1: every sequence is encoded once and the targets reuse it),
+``actions``/``rewards``/``terminated``/``mask`` have L rows; ``mask`` is 1 on real transitions and 0
+on padding. The recurrent nets read observation t together with the previous action a_{t-1}
+(zeros at t = 0), as in Equi-RSAC (pomdp-baselines' ``prev_actions``).
+
+    critic:  y_t = r_t + gamma (1 - term_t) [min_i Q'_i(h'_{t+1}, a'_{t+1}) - alpha log pi(a'_{t+1} | h_{t+1})]
+             L_Q = sum_i sum_t mask_t (Q_i(h_t, a_t) - y_t)^2 / sum_t mask_t        a' ~ pi (no gradient)
+    actor:   L_pi = sum_t mask_t [alpha log pi(a~_t | h_t) - min_i Q_i(h_t, a~_t)] / sum_t mask_t,  a~ ~ pi (reparameterised)
+    alpha:   L_alpha = -log_alpha * sum_t mask_t (log pi(a~_t) + target_entropy) / sum_t mask_t
+
+A truncated episode bootstraps from its last observation (stored); only ``terminated`` stops it.
+
+Speed choices (each saves one pass of an image encoder over B x (L+1) images per update):
+* the actor's forward pass serves both the critic targets (a' at t+1, no gradient) and the actor
+  loss (a~ at t, reparameterised);
+* the actor loss reads the critic's recurrent features from the critic step, detached, through the
+  critic's (just updated) Q heads; gradients are taken only with respect to the loss's own
+  parameters (``torch.autograd.grad``), so no loss can move another's parameters.
+
+``RecurrentSAC`` wires the losses into one update (critic, actor, alpha, soft target update).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+
+
+@dataclass(frozen=True)
+class Batch:
+    """A training batch as tensors (see the module docstring for shapes)."""
+
+    images: Tensor  # (B, L+1, C, H, W) float32
+    actions: Tensor  # (B, L, A) float32 in [-1, 1]
+    rewards: Tensor  # (B, L)
+    terminated: Tensor  # (B, L) float, 1 where the task ended (no bootstrap)
+    mask: Tensor  # (B, L) float, 1 on real transitions
+
+    @property
+    def prev_actions(self) -> Tensor:
+        """(B, L+1, A): a_{t-1} beside observation t, zeros at t = 0."""
+        a = self.actions
+        return torch.cat([torch.zeros_like(a[:, :1]), a], dim=1)
+
+
+@dataclass(frozen=True)
+class SacSettings:
+    gamma: float = 0.9
+    """Discount (Equi-RSAC: 0.9)."""
+    tau: float = 0.005
+    """Soft-update rate of the target critic."""
+    lr: float = 3e-4
+    """Adam learning rate of actor and critic."""
+    alpha_lr: float = 1e-3
+    """Adam learning rate of log alpha."""
+    init_alpha: float = 0.1
+    """Initial entropy temperature."""
+    target_entropy: float = -5.0
+    """Target entropy (-action_dim)."""
+    autotune_alpha: bool = True
+    """Tune alpha to reach the target entropy; else keep init_alpha."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {self.gamma}")
+        if not 0.0 < self.tau <= 1.0:
+            raise ValueError(f"tau must be in (0, 1], got {self.tau}")
+        if self.lr <= 0 or self.alpha_lr <= 0 or self.init_alpha <= 0:
+            raise ValueError("lr, alpha_lr and init_alpha must be positive")
+
+
+# ------------------------------------------------------------------------------------------------
+# tanh-Gaussian policy distribution
+# ------------------------------------------------------------------------------------------------
+
+
+def tanh_gaussian_sample(
+    mean: Tensor, log_std: Tensor, noise: Tensor | None = None, generator: torch.Generator | None = None
+) -> tuple[Tensor, Tensor]:
+    """Reparameterised sample a = tanh(mean + std * eps) and its log-density (summed over the last axis).
+
+    log pi(a) = sum_k [log N(u_k; mean_k, std_k) - log(1 - tanh(u_k)^2)], with the Jacobian term in the
+    stable form 2 (log 2 - u - softplus(-2u))."""
+    log_std = log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
+    if noise is None:
+        noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+    std = log_std.exp()
+    u = mean + std * noise
+    log_normal = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+    log_jac = 2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))
+    return torch.tanh(u), (log_normal - log_jac).sum(-1)
+
+
+def deterministic_action(mean: Tensor) -> Tensor:
+    """Evaluation action: tanh of the mean."""
+    return torch.tanh(mean)
+
+
+def masked_mean(x: Tensor, mask: Tensor) -> Tensor:
+    return (x * mask).sum() / mask.sum().clamp_min(1.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# losses
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PolicyOutputs:
+    """One actor pass over the batch: sampled actions and log-probs at every observation (L+1)."""
+
+    actions: Tensor  # (B, L+1, A)
+    log_probs: Tensor  # (B, L+1)
+    mean: Tensor
+    log_std: Tensor
+
+
+def policy_outputs(actor: nn.Module, batch: Batch, noise: Tensor | None = None) -> PolicyOutputs:
+    mean, log_std, _ = actor(batch.images, batch.prev_actions)
+    actions, log_probs = tanh_gaussian_sample(mean, log_std, noise)
+    return PolicyOutputs(actions, log_probs, mean, log_std)
+
+
+def critic_targets(
+    critic_target: nn.Module, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float, gamma: float
+) -> Tensor:
+    """y_t (B, L), without gradient."""
+    with torch.no_grad():
+        feats, _ = critic_target.features(batch.images, batch.prev_actions)
+        q1, q2 = critic_target.q(feats[:, 1:], policy.actions[:, 1:].detach())
+        soft_v = torch.min(q1, q2) - alpha * policy.log_probs[:, 1:].detach()
+        return batch.rewards + gamma * (1.0 - batch.terminated) * soft_v
+
+
+def critic_loss(critic: nn.Module, batch: Batch, targets: Tensor) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+    """Twin-Q regression onto ``targets``. Returns (loss, features of all L+1 steps, info)."""
+    feats, _ = critic.features(batch.images, batch.prev_actions)
+    q1, q2 = critic.q(feats[:, :-1], batch.actions)
+    loss = masked_mean((q1 - targets).pow(2), batch.mask) + masked_mean((q2 - targets).pow(2), batch.mask)
+    info = {"q1": masked_mean(q1.detach(), batch.mask), "q2": masked_mean(q2.detach(), batch.mask)}
+    return loss, feats, info
+
+
+def actor_loss(
+    critic: nn.Module, critic_features: Tensor, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float
+) -> Tensor:
+    """alpha log pi - min Q at the policy's own actions, on real transitions."""
+    q1, q2 = critic.q(critic_features[:, :-1].detach(), policy.actions[:, :-1])
+    return masked_mean(alpha * policy.log_probs[:, :-1] - torch.min(q1, q2), batch.mask)
+
+
+def alpha_loss(log_alpha: Tensor, log_probs: Tensor, mask: Tensor, target_entropy: float) -> Tensor:
+    return -log_alpha * masked_mean(log_probs.detach() + target_entropy, mask)
+
+
+def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
+    """target <- (1 - tau) target + tau source, parameters and floating buffers."""
+    with torch.no_grad():
+        for t, s in zip(target.parameters(), source.parameters(), strict=True):
+            t.lerp_(s, tau)
+        for t, s in zip(target.buffers(), source.buffers(), strict=True):
+            if t.is_floating_point():
+                t.lerp_(s, tau)
+            else:
+                t.copy_(s)
+
+
+def _step(opt: torch.optim.Optimizer, loss: Tensor, params: list[Tensor], retain_graph: bool = False) -> None:
+    """Gradients of ``loss`` for ``params`` only (others untouched), then one optimiser step."""
+    grads = torch.autograd.grad(loss, params, retain_graph=retain_graph, allow_unused=True)
+    for p, g in zip(params, grads, strict=True):
+        p.grad = g
+    opt.step()
+
+
+# ------------------------------------------------------------------------------------------------
+# the update
+# ------------------------------------------------------------------------------------------------
+
+
+class RecurrentSAC:
+    """Actor, twin critic with a soft-updated target copy, entropy temperature, their optimisers."""
+
+    def __init__(self, actor: nn.Module, critic: nn.Module, settings: SacSettings) -> None:
+        self.s = settings
+        self.actor, self.critic = actor, critic
+        self.critic_target = copy.deepcopy(critic).requires_grad_(False)
+        self.log_alpha = torch.tensor(math.log(settings.init_alpha), requires_grad=True)
+        self._actor_params = [p for p in actor.parameters() if p.requires_grad]
+        self._critic_params = [p for p in critic.parameters() if p.requires_grad]
+        self.actor_opt = torch.optim.Adam(self._actor_params, lr=settings.lr)
+        self.critic_opt = torch.optim.Adam(self._critic_params, lr=settings.lr)
+        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=settings.alpha_lr)
+        self.updates = 0
+
+    @property
+    def alpha(self) -> Tensor:
+        return self.log_alpha.detach().exp()
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        alpha = self.alpha
+        policy = policy_outputs(self.actor, batch)
+        targets = critic_targets(self.critic_target, batch, policy, alpha, self.s.gamma)
+        q_loss, feats, info = critic_loss(self.critic, batch, targets)
+        _step(self.critic_opt, q_loss, self._critic_params)
+        pi_loss = actor_loss(self.critic, feats, batch, policy, alpha)
+        _step(self.actor_opt, pi_loss, self._actor_params)
+        log_probs = policy.log_probs[:, :-1]
+        a_loss = alpha_loss(self.log_alpha, log_probs, batch.mask, self.s.target_entropy)
+        if self.s.autotune_alpha:
+            _step(self.alpha_opt, a_loss, [self.log_alpha])
+        soft_update(self.critic_target, self.critic, self.s.tau)
+        self.updates += 1
+        return {
+            "critic_loss": float(q_loss.detach()),
+            "actor_loss": float(pi_loss.detach()),
+            "alpha_loss": float(a_loss.detach()),
+            "alpha": float(self.alpha),
+            "q1": float(info["q1"]),
+            "q2": float(info["q2"]),
+            "target_q": float(masked_mean(targets, batch.mask)),
+            "entropy": float(-masked_mean(log_probs.detach(), batch.mask)),
+        }
+
+    # checkpoints -------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "critic_target": self.critic_target.state_dict(),
+            "log_alpha": self.log_alpha.detach().clone(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "alpha_opt": self.alpha_opt.state_dict(),
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, d: dict) -> None:
+        self.actor.load_state_dict(d["actor"])
+        self.critic.load_state_dict(d["critic"])
+        self.critic_target.load_state_dict(d["critic_target"])
+        with torch.no_grad():
+            self.log_alpha.copy_(d["log_alpha"])
+        self.actor_opt.load_state_dict(d["actor_opt"])
+        self.critic_opt.load_state_dict(d["critic_opt"])
+        self.alpha_opt.load_state_dict(d["alpha_opt"])
+        self.updates = int(d["updates"])

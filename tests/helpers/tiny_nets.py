@@ -1,0 +1,54 @@
+"""Small recurrent actor/critic with the learner's network interface, for testing the SAC math fast.
+
+Same contract as ``services.learner.core.networks``: images (B, T, C, H, W) and previous actions
+(B, T, A) in; the actor returns (mean, log_std, state); the critic returns per-step features and
+twin Q values from them. Causal (a GRU), so padding after an episode cannot leak backwards.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+A = 5
+
+
+class _Trunk(nn.Module):
+    def __init__(self, image_numel: int, hidden: int) -> None:
+        super().__init__()
+        self.embed = nn.Linear(image_numel, hidden)
+        self.rnn = nn.GRU(hidden + A, hidden, batch_first=True)
+
+    def forward(
+        self, images: Tensor, prev_actions: Tensor, state: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        e = torch.tanh(self.embed(images.flatten(2)))
+        h, state = self.rnn(torch.cat([e, prev_actions], -1), state)
+        return torch.cat([h, e], -1), state
+
+
+class TinyActor(nn.Module):
+    def __init__(self, image_numel: int, hidden: int = 16) -> None:
+        super().__init__()
+        self.trunk = _Trunk(image_numel, hidden)
+        self.head = nn.Linear(2 * hidden, 2 * A)
+
+    def forward(self, images: Tensor, prev_actions: Tensor, state: Tensor | None = None):
+        f, state = self.trunk(images, prev_actions, state)
+        mean, log_std = self.head(f).chunk(2, -1)
+        return mean, log_std.clamp(-20.0, 2.0), state
+
+
+class TinyCritic(nn.Module):
+    def __init__(self, image_numel: int, hidden: int = 16) -> None:
+        super().__init__()
+        self.trunk = _Trunk(image_numel, hidden)
+        self.q1 = nn.Sequential(nn.Linear(2 * hidden + A, hidden), nn.ReLU(), nn.Linear(hidden, 1))
+        self.q2 = nn.Sequential(nn.Linear(2 * hidden + A, hidden), nn.ReLU(), nn.Linear(hidden, 1))
+
+    def features(self, images: Tensor, prev_actions: Tensor, state: Tensor | None = None):
+        return self.trunk(images, prev_actions, state)
+
+    def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
+        x = torch.cat([features, actions], -1)
+        return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)

@@ -1,0 +1,102 @@
+"""The learner service on the in-process bus: rate limiting, weights versions, the gate, bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from proto.topics import EPISODES_AUGMENTED, REPLAY_GATE, STATUS, WEIGHTS_ANNOUNCE
+from services.common.bus import Hub, InProcBus
+from services.common.config import ServiceConfig
+from services.common.weights import WeightsClient
+from services.learner.core.policy import PolicyRuntime
+from services.learner.main import run
+from tests.helpers.learner import SIZE, learner_episode, tiny_learner_config
+
+pytestmark = pytest.mark.integration
+
+
+def svc() -> ServiceConfig:
+    return ServiceConfig(instance_id="learner-t", metrics_port=0, log_format="text", heartbeat_seconds=0.2)
+
+
+def wait_for(pred, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = pred()
+        if value:
+            return value
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_learner_respects_the_ratio_publishes_versions_and_survives_bad_input(tmp_path):
+    # spi 0.5, min 20 steps, error buffer 5: updates allowed = 0.5 * steps - (0.5 * 20 - 5) = 0.5 * steps - 5
+    cfg = tiny_learner_config(
+        tmp_path, svc(), samples_per_insert=0.5, min_steps=20, error_buffer=5.0, max_updates=14
+    )
+    hub = Hub()
+    observer = InProcBus(hub)
+    announces = observer.subscribe(WEIGHTS_ANNOUNCE, capacity=256)
+    gates = observer.subscribe(REPLAY_GATE, capacity=4096)
+    status = observer.subscribe(STATUS, capacity=256, service="learner")
+    watch = observer.watch_alive("learner")
+    result: dict = {}
+    thread = threading.Thread(
+        target=lambda: result.setdefault("rc", run(cfg, bus_factory=lambda _c: InProcBus(hub))), daemon=True
+    )
+    thread.start()
+    assert watch.wait_for(lambda alive: ("learner", "learner-t") in alive, timeout=30)
+    seen_gates: list = []
+
+    def latest_gate():
+        seen_gates.extend(d.message for d in gates.drain())
+        return seen_gates[-1] if seen_gates else None
+
+    # version 0 (initial weights) arrives before any data; a consumer can load and act with it
+    first = wait_for(lambda: announces.drain(), 10, "version 0")
+    assert first[0].message.version == 0
+    client = WeightsClient(observer, timeout=5.0)
+    policy = PolicyRuntime(deterministic=True)
+    policy.load(client.poll())
+    a = policy.act(np.zeros((2, SIZE, SIZE), np.uint8))
+    assert a.shape == (5,) and np.all(np.abs(a) <= 1)
+
+    # bad input: no images, wrong image size -> counted and skipped, not fatal
+    bad_none = dataclasses.replace(learner_episode(90), images=None, episode_id="bad-none")
+    bad_size = dataclasses.replace(
+        learner_episode(91), images=np.zeros((11, 2, SIZE + 1, SIZE + 1), np.uint8), episode_id="bad-size"
+    )
+    for ep in (bad_none, bad_size):
+        observer.publish(EPISODES_AUGMENTED, ep, source="augmenter-0")
+    # 3 raw episodes of 10 steps (+1 copy each: copies are not env steps) -> 30 steps -> 10 updates
+    for k in range(3):
+        raw = learner_episode(k, T=10, demo=k == 0)
+        observer.publish(EPISODES_AUGMENTED, raw, source="augmenter-0")
+        observer.publish(
+            EPISODES_AUGMENTED, learner_episode(100 + k, copy_of=raw.episode_id), source="augmenter-0"
+        )
+    wait_for(lambda: (g := latest_gate()) is not None and g.updates >= 10, 60, "10 updates")
+    time.sleep(1.0)  # the limiter must hold it there: no over-training on the same 30 steps
+    g = latest_gate()
+    assert g.updates == 10 and g.inserted_steps == 30 and g.replay_transitions == 60
+    assert g.allowed_steps > g.inserted_steps  # producers may add more (max_diff = 0.5*20 + 5)
+    assert thread.is_alive()
+    # 10 more steps -> 15 allowed -> max_updates 14 reached -> the learner exits cleanly
+    observer.publish(EPISODES_AUGMENTED, learner_episode(5, T=10), source="augmenter-0")
+    thread.join(timeout=60)
+    assert not thread.is_alive() and result["rc"] == 0
+
+    versions = [d.message.version for d in first[1:] + announces.drain()]
+    assert versions == sorted(versions) and len(set(versions)) == len(versions)
+    assert max(versions) >= 7  # publish_every 2: 14 updates -> versions 1..7, plus a final one
+    beats = [d.message for d in status.drain()]
+    last = beats[-1].counters
+    assert last["updates"] == 14 and last["rejected"] == 2 and last["env_steps"] == 40
+    assert np.isfinite(last["critic_loss"])
+    assert (tmp_path / "checkpoints" / "learner.pt").exists()  # written on shutdown
+    assert (tmp_path / "learner.json").exists()
