@@ -9,8 +9,9 @@ Seeds: actor `index` i uses seed_base + i * 1e6 + k for its k-th episode; evalua
 
 Replay gate: after its demonstrations, an actor starts a new episode only while the learner's
 latest ``ReplayGate`` (fresher than ``--gate-timeout``) still allows env steps; otherwise it waits
-(``mea_actor_gate_wait_seconds_total``). With no learner (no gate seen) it does not wait. Each
-actor can overshoot the allowance by at most the episode it already started.
+(``mea_actor_gate_wait_seconds_total``). Before its first policy episode it listens up to 1.5 s
+for a gate; with no learner (no gate seen) it then runs freely. Each actor can overshoot the
+allowance by at most the episode it already started.
 """
 
 from __future__ import annotations
@@ -103,9 +104,10 @@ def policy_image(obs: Observation) -> np.ndarray:
 class GateFollower:
     """Tracks the learner's latest ``ReplayGate`` and waits while its allowance is used up."""
 
-    def __init__(self, bus: Bus, stale_after: float) -> None:
+    def __init__(self, bus: Bus, stale_after: float, first_wait: float = 1.5) -> None:
         self.sub = bus.subscribe(REPLAY_GATE, capacity=16)
-        self.stale_after = stale_after
+        self.stale_after, self.first_wait = stale_after, first_wait
+        self._first = True
         self.latest: ReplayGate | None = None
         self.seen_at = 0.0
 
@@ -115,6 +117,11 @@ class GateFollower:
                 self.latest, self.seen_at = d.message, time.monotonic()
 
     def blocked(self) -> bool:
+        if self._first:  # give a running learner's gate (every ~0.5 s) a chance to arrive first
+            self._first = False
+            d = self.sub.recv(timeout=self.first_wait)
+            if d is not None:
+                self.latest, self.seen_at = d.message, time.monotonic()
         self._drain()
         if self.latest is None or time.monotonic() - self.seen_at > self.stale_after:
             return False

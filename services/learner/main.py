@@ -487,8 +487,20 @@ def main(argv: Sequence[str]) -> int:
 
 
 def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
-    """Arguments `mea run` passes to the learner: the cpu-small preset, state under the run directory."""
-    return ["--preset", "cpu-small", "--run-dir", str(run_dir / "learner")]
+    """Arguments `mea run` passes to the learner: the cpu-small preset, Equi-RSAC's group per task (C4
+    for Block Pull, D4 for the others), one torch thread (it shares the cores with the actors and the
+    augmenter; two OpenMP threads on a busy 2-core machine wait on each other), state under run_dir."""
+    group = "c4" if run_cfg.task == "block_pull" else "d4"
+    return [
+        "--preset",
+        "cpu-small",
+        "--net.group",
+        group,
+        "--threads",
+        "1",
+        "--run-dir",
+        str(run_dir / "learner"),
+    ]
 
 
 __all__ = ["Learner", "LearnerConfig", "PRESETS", "launch_args", "main", "run"]

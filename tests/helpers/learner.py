@@ -22,7 +22,7 @@ TINY_NET = NetConfig(
     image_embed=8,
     action_embed=4,
     lstm_hidden=8,
-    mlp_hidden=(8,),
+    mlp_hidden=(16,),
 )
 
 
