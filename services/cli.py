@@ -18,6 +18,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "augmenter": ("services.augmenter.main", "run the MEA augmenter on raw episodes"),
     "learner": ("services.learner.main", "train Equi-RSAC / GASv2 and broadcast weights"),
     "evaluator": ("services.evaluator.main", "evaluate broadcast weights on held-out seeds"),
+    "plot": (
+        "services.evaluator.plot",
+        "render learning curves (success vs env steps, mean ± std over seeds) to PNG",
+    ),
     "audit": (
         "services.augmenter.audit",
         "replay augmented episodes through physics and report their validity",

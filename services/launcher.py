@@ -10,12 +10,15 @@ also die with the launcher (PR_SET_PDEATHSIG), so no orphan survives it.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import importlib
+import json
 import logging
 import multiprocessing as mp
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -25,11 +28,12 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from proto.control import Heartbeat
-from proto.topics import STATUS
+from proto.control import EvalReport, Heartbeat
+from proto.topics import EPISODES_RAW, EVAL_REPORTS, STATUS
 from services.cli import available
 from services.common import config, logs
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
+from services.common.mcap_io import McapRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent
 
@@ -39,12 +43,40 @@ SERVICE_ORDER = ("learner", "augmenter", "evaluator", "actor")
 SERVICE_MODULES = {s: f"services.{s}.main" for s in SERVICE_ORDER}
 
 
+VARIANTS = ("mea", "equiobs", "equirsac")
+MEA_ON = ("", "demos", "successes", "all")
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """Run the full training stack locally."""
 
     task: str = "block_pull"
     """Task: block_pull, block_pick or drawer_open."""
+    variant: str = "mea"
+    """What the paper compares: equirsac (rendered depth image, isometric x4), equiobs (voxel
+    projection, isometric x4), mea (voxel projection, isometric x4 + MEA x6 on the demos)."""
+    mea_on: str = ""
+    """mea variant only: which episodes get MEA (demos, the paper's default; successes; all)."""
+    env_steps: int = 40_000
+    """Env-step budget (the paper: 40K, demos included); the run stops after the evaluation at the
+    budget. 0: run until Ctrl-C."""
+    learner_preset: str = "cpu-small"
+    """Learner preset: cpu-small (two CPU cores), paper (a GPU workstation), smoke (tests)."""
+    seed: int = 0
+    """Run seed: actors' training seeds, augmentation, networks (evaluation seeds are fixed)."""
+    eval_every: int = 1000
+    """Evaluate the newest weights every this many env steps (Equi-RSAC: 250-500; raise it on CPU)."""
+    eval_episodes: int = 10
+    """Evaluation episodes per evaluation (held-out seeds, deterministic policy)."""
+    record: bool = True
+    """Record every raw episode to RUN_DIR/episodes/raw-<n>.mcap."""
+    follow_gate: bool = True
+    """Actors wait for the learner's replay gate (off: actors run flat out; for benchmarks)."""
+    resume: Path | None = None
+    """Continue the run in this directory (its saved config; learner checkpoint; no new demos)."""
+    resumes: int = 0
+    """How many times the run was resumed (set by --resume; moves the actors' seed streams on)."""
     actors: int = 1
     """Number of actor processes."""
     demos: int = 2
@@ -60,8 +92,9 @@ class RunConfig:
     (README). 0 disables every /metrics."""
     duration_seconds: float = 0.0
     """Stop after this many seconds (0: run until Ctrl-C / SIGTERM)."""
-    stop_grace_seconds: float = 5.0
-    """How long children get to exit after SIGTERM before SIGKILL."""
+    stop_grace_seconds: float = 30.0
+    """How long children get to exit after SIGTERM before SIGKILL (the learner writes its final
+    checkpoint then; others exit within a second or two)."""
     stop_on_failure: bool = True
     """If a service exits unexpectedly, stop the whole stack (otherwise keep running without it)."""
     services: tuple[str, ...] = SERVICE_ORDER
@@ -70,10 +103,20 @@ class RunConfig:
     """Additional `module:function` entries to start as services (plugins; used by tests)."""
     log_format: str = "text"
     """Log format of the launcher and its services: json or text."""
+    final_eval_seconds: float = 300.0
+    """At the budget, how long to wait for the evaluation of the last weights before stopping."""
 
     def __post_init__(self) -> None:
         if self.actors < 0:
             raise ValueError("actors must be >= 0")
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, not {self.variant!r}")
+        if self.mea_on not in MEA_ON:
+            raise ValueError(f"mea_on must be one of {MEA_ON[1:]}, not {self.mea_on!r}")
+        if self.mea_on and self.variant != "mea":
+            raise ValueError("--mea-on applies to --variant mea only")
+        if self.env_steps < 0 or self.eval_every < 1 or self.eval_episodes < 1:
+            raise ValueError("env_steps must be >= 0, eval_every and eval_episodes >= 1")
         unknown = set(self.services) - set(SERVICE_ORDER)
         if unknown:
             raise ValueError(f"unknown services {sorted(unknown)}; choose from {SERVICE_ORDER}")
@@ -151,20 +194,75 @@ def stop_children(procs: dict[str, mp.process.BaseProcess], grace: float) -> Non
 
 
 class StatusBoard:
-    """Latest heartbeat per instance plus liveliness, rendered as a table."""
+    """Latest heartbeat per instance, liveliness and evaluation reports, rendered as a table with a
+    progress line (env steps, augmented transitions, updates, weights version, success, ETA)."""
 
     KEY_COUNTERS = 4
+    RATE_WINDOW = 120.0
 
-    def __init__(self, specs: list[ChildSpec]) -> None:
+    def __init__(self, specs: list[ChildSpec], budget: int = 0) -> None:
         self.expected = [(s.service, s.instance) for s in specs]
         self.beats: dict[tuple[str, str], Heartbeat] = {}
         self.exits: dict[str, int] = {}
+        self.budget = budget
+        self.report: EvalReport | None = None
+        self._steps: list[tuple[float, float]] = []  # (time, env steps) for the rate
+        self.started = time.time()
 
     def update(self, hb: Heartbeat) -> None:
         self.beats[(hb.service, hb.instance_id)] = hb
 
+    def add_report(self, r: EvalReport) -> None:
+        if self.report is None or r.policy_version >= self.report.policy_version:
+            self.report = r
+
+    def _sum(self, service: str, key: str) -> float | None:
+        values = [
+            hb.counters[key] for (svc, _), hb in self.beats.items() if svc == service and key in hb.counters
+        ]
+        return sum(values) if values else None
+
+    def env_steps(self) -> float | None:
+        """The learner's count of inserted env steps (else the actors' own)."""
+        learner = self._sum("learner", "env_steps")
+        return learner if learner is not None else self._sum("actor", "env_steps")
+
+    def progress(self, started: float, now: float | None = None) -> dict[str, float | str | None]:
+        now = time.time() if now is None else now
+        steps = self.env_steps()
+        eta = None
+        if steps is not None:
+            self._steps = [(t, v) for t, v in self._steps if now - t <= self.RATE_WINDOW] + [(now, steps)]
+            (t0, v0), (t1, v1) = self._steps[0], self._steps[-1]
+            if self.budget and v1 > v0 and t1 > t0:
+                eta = max(0.0, (self.budget - v1) / ((v1 - v0) / (t1 - t0)))
+        r = self.report
+        return {
+            "env_steps": steps,
+            "augmented": self._sum("augmenter", "transitions_out"),
+            "updates": self._sum("learner", "updates"),
+            "version": self._sum("learner", "version"),
+            "success": None if r is None else r.success_rate,
+            "success_at": None if r is None else r.env_steps,
+            "elapsed": now - started,
+            "eta": eta,
+        }
+
+    def progress_line(self, started: float) -> str:
+        p = self.progress(started)
+
+        def n(v) -> str:
+            return "—" if v is None else f"{v:,.0f}"
+
+        budget = f"/{self.budget:,}" if self.budget else ""
+        success = "—" if p["success"] is None else f"{p['success']:.0%} (at {n(p['success_at'])} steps)"
+        eta = "—" if p["eta"] is None else f"{p['eta'] / 60:,.0f} min"
+        return (f"env steps {n(p['env_steps'])}{budget} · augmented transitions {n(p['augmented'])} · "
+                f"updates {n(p['updates'])} · weights v{n(p['version'])} · success {success} · "
+                f"elapsed {p['elapsed'] / 60:,.1f} min · ETA {eta}")  # fmt: skip
+
     def table(self, alive: set[tuple[str, str]], started: float) -> Table:
-        t = Table(title=f"mea run — {time.time() - started:,.0f} s")
+        t = Table(title=f"mea run — {time.time() - started:,.0f} s", caption=self.progress_line(started))
         for col in ("service", "instance", "alive", "state", "policy", "counters"):
             t.add_column(col)
         for who in self.expected:
@@ -176,7 +274,8 @@ class StatusBoard:
             counters = ""
             if hb:
                 counters = "  ".join(
-                    f"{k}={v:,.0f}" for k, v in list(hb.counters.items())[: self.KEY_COUNTERS]
+                    f"{k}={v:,.3g}" if abs(v) < 10 else f"{k}={v:,.0f}"
+                    for k, v in list(hb.counters.items())[: self.KEY_COUNTERS]
                 )
             t.add_row(
                 who[0],
@@ -187,6 +286,34 @@ class StatusBoard:
                 counters,
             )
         return t
+
+
+class EpisodeRecorder:
+    """Writes every raw episode the router sees to an MCAP file, in a thread of the launcher."""
+
+    def __init__(self, router: ZenohBus, path: Path, metadata: dict[str, str]) -> None:
+        self.sub = router.subscribe(EPISODES_RAW, capacity=256)
+        self.recorder = McapRecorder(path, metadata=metadata, compression="zstd")
+        self._stop = False
+        self.thread = threading.Thread(target=self._loop, name="recorder", daemon=True)
+        self.thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop:
+            d = self.sub.recv(timeout=0.25)
+            if d is not None:
+                try:
+                    self.recorder.write(d.message, topic=d.key)
+                except Exception:  # noqa: BLE001 - a recording problem must not stop training
+                    log.exception("recording an episode failed")
+
+    def close(self) -> None:
+        self.sub.close()
+        self._stop = True
+        self.thread.join(timeout=5.0)
+        for d in self.sub.drain():  # what was already received is still written
+            self.recorder.write(d.message, topic=d.key)
+        self.recorder.close()
 
 
 def _launcher_metrics(cfg: RunConfig, router: ZenohBus) -> ServiceMetrics:
@@ -215,6 +342,8 @@ def _supervise(
     exited = metrics.counter("mea_launcher_service_exits", "Service processes that exited before shutdown.")
     watch = router.watch_alive()
     beats = router.subscribe(STATUS, capacity=1024)
+    reports = router.subscribe(EVAL_REPORTS, capacity=256)
+    budget_reached_at: float | None = None
     started = time.time()
     console = Console()
     live = (
@@ -229,6 +358,8 @@ def _supervise(
         while not shutdown.is_set():
             for d in beats.drain():
                 board.update(d.message)
+            for d in reports.drain():
+                board.add_report(d.message)
             for name, p in procs.items():
                 if p.exitcode is not None and name not in board.exits:
                     board.exits[name] = p.exitcode
@@ -241,13 +372,23 @@ def _supervise(
             alive_gauge.set(sum(w in alive for w in board.expected))
             if cfg.duration_seconds and time.time() - started >= cfg.duration_seconds:
                 shutdown.set("duration reached")
+            steps = board.env_steps()
+            if cfg.env_steps and steps is not None and steps >= cfg.env_steps:
+                budget_reached_at = budget_reached_at or time.time()
+                evaluated = board.report is not None and board.report.env_steps >= cfg.env_steps
+                has_evaluator = any(svc == "evaluator" for svc, _ in board.expected)
+                if evaluated or not has_evaluator or time.time() - budget_reached_at > cfg.final_eval_seconds:
+                    shutdown.set("env-step budget reached")
             if live:
                 live.update(board.table(alive, started))
             elif time.time() - last_line > 10:
                 last_line = time.time()
                 log.info(
                     "status",
-                    extra={"alive": f"{sum(w in alive for w in board.expected)}/{len(board.expected)}"},
+                    extra={
+                        "alive": f"{sum(w in alive for w in board.expected)}/{len(board.expected)}",
+                        "progress": board.progress_line(started),
+                    },
                 )
             shutdown.wait(0.25)
     finally:
@@ -256,10 +397,36 @@ def _supervise(
     return failed
 
 
+_MACHINE_FIELDS = ("listen", "metrics_port", "duration_seconds", "stop_grace_seconds", "log_format",
+                   "final_eval_seconds")  # fmt: skip
+"""Fields a resumed run takes from the command line rather than from the run's saved config."""
+
+
+def resumed_config(cfg: RunConfig) -> RunConfig:
+    """``--resume RUN_DIR``: the run's saved config, with this machine's settings, resumes + 1."""
+    path = Path(cfg.resume) / "config.json"
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"mea run: cannot resume from {path}: {exc}") from None
+    known = {f.name: f for f in dataclasses.fields(RunConfig)}
+    values = {k: v for k, v in saved.items() if k in known and k not in _MACHINE_FIELDS}
+    for k in ("services", "extra_services"):
+        if k in values:
+            values[k] = tuple(values[k])
+    values.update(run_dir=Path(cfg.resume), resume=Path(cfg.resume), resumes=int(saved.get("resumes", 0)) + 1)
+    values.update({k: getattr(cfg, k) for k in _MACHINE_FIELDS})
+    return RunConfig(**values)
+
+
 def run(cfg: RunConfig) -> int:
     logs.setup("launcher", "launcher", cfg.log_format, "INFO")
-    run_dir = cfg.run_dir or Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{cfg.task}"
+    if cfg.resume is not None:
+        cfg = resumed_config(cfg)
+        log.info("resuming", extra={"run_dir": str(cfg.run_dir), "resumes": cfg.resumes})
+    run_dir = cfg.run_dir or Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{cfg.task}-{cfg.variant}"
     run_dir.mkdir(parents=True, exist_ok=True)
+    cfg = dataclasses.replace(cfg, run_dir=run_dir)
     config.save(cfg, run_dir / "config.json")
     shutdown = Shutdown()
     specs, missing = child_specs(cfg, run_dir)
@@ -271,6 +438,10 @@ def run(cfg: RunConfig) -> int:
         print(f"mea run: cannot start the Zenoh router on {cfg.listen}: {exc}", file=sys.stderr)
         return 2
     metrics = _launcher_metrics(cfg, router)
+    recorder = None
+    if cfg.record:
+        meta = {"task": cfg.task, "variant": cfg.variant, "seed": str(cfg.seed), "resumes": str(cfg.resumes)}
+        recorder = EpisodeRecorder(router, run_dir / "episodes" / f"raw-{cfg.resumes}.mcap", meta)
     ctx = mp.get_context("spawn")
     procs: dict[str, mp.process.BaseProcess] = {}
     failed = False
@@ -280,10 +451,15 @@ def run(cfg: RunConfig) -> int:
             p.start()
             procs[s.instance] = p
         log.info("started", extra={"run_dir": str(run_dir), "children": len(procs), "listen": cfg.listen})
-        failed = _supervise(cfg, procs, StatusBoard(specs), router, metrics, shutdown)
-        log.info("stopping", extra={"reason": shutdown.reason})
+        board = StatusBoard(specs, budget=cfg.env_steps)
+        failed = _supervise(cfg, procs, board, router, metrics, shutdown)
+        log.info(
+            "stopping", extra={"reason": shutdown.reason, "progress": board.progress_line(board.started)}
+        )
     finally:
         stop_children(procs, cfg.stop_grace_seconds)
+        if recorder is not None:
+            recorder.close()
         router.close()
         metrics.close()
     return 1 if failed else 0

@@ -12,6 +12,12 @@ latest ``ReplayGate`` (fresher than ``--gate-timeout``) still allows env steps; 
 (``mea_actor_gate_wait_seconds_total``). Before its first policy episode it listens up to 1.5 s
 for a gate; with no learner (no gate seen) it then runs freely. Each actor can overshoot the
 allowance by at most the episode it already started.
+
+Policy input: a learned policy's weights say which observation it was trained on
+(``PolicySpec.observation``): ``voxel`` (the voxel projection of the point clouds, ``policy_image``)
+or ``depth`` (the rendered Equi-RSAC depth image, ``policy_input``). A ``depth`` policy needs the env
+to render that image (``--depth-image``); an actor without it refuses such weights like any blob that
+does not fit (logged, ``mea_actor_bad_weights_total``), keeps the weights it has and runs on.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from services.actor.episodes import EpisodeBuilder
 from services.actor.tasks import EXPERT_STYLES, TASKS, EnvSettings, ManipulationEnv, make_env
 from services.actor.tasks.camera import CameraSettings
 from services.actor.tasks.env import Observation
+from services.augmenter.core.depth_image import policy_images as depth_policy_images
 from services.augmenter.core.projection import DEFAULT_SPEC, quantized_observations, segments_to_points
 from services.common import config
 from services.common.bus.base import Bus
@@ -99,6 +106,24 @@ def policy_image(obs: Observation) -> np.ndarray:
     bit-identical to what the augmenter attaches to stored episodes."""
     points, valid = segments_to_points(obs.points[None], obs.point_counts[None])
     return quantized_observations(points, np.array([obs.jaw], np.float32), DEFAULT_SPEC, valid)[0]
+
+
+def policy_input(obs: Observation, observation: str) -> np.ndarray:
+    """The learned policy's input for ``observation`` ("voxel" or "depth"), uint8 (2, 84, 84).
+
+    ``voxel``: ``policy_image(obs)``. ``depth``: the rendered depth image's codes + jaw
+    (``services.augmenter.core.depth_image.policy_images``), taken through float16 first, as the
+    published episode stores it, so the input is bit-identical to what the augmenter attaches for
+    the learner. Needs ``obs.depth_image`` (an env with ``depth_image=True``); ValueError otherwise.
+    """
+    if observation == "voxel":
+        return policy_image(obs)
+    if observation != "depth":
+        raise ValueError(f"observation must be voxel or depth, not {observation!r}")
+    if obs.depth_image is None:
+        raise ValueError("a depth policy needs the rendered depth image: start the actor with --depth-image")
+    depth = np.asarray(obs.depth_image).astype(np.float16)[None]
+    return depth_policy_images(depth, np.array([obs.jaw], np.float32))[0]
 
 
 class GateFollower:
@@ -198,7 +223,8 @@ class Actor:
         """One episode with a ``PolicyRuntime`` (stochastic; its recurrent state starts afresh)."""
         seed = self.next_seed()
         policy.reset()
-        return run_episode(self.env, seed, lambda o: policy.act(policy_image(o)),
+        observation = policy.spec.observation
+        return run_episode(self.env, seed, lambda o: policy.act(policy_input(o, observation)),
                            self.builder(seed, "learned", policy.version, False), on_step)  # fmt: skip
 
     def policy_episode(self, k: int, policy=None, on_step=None) -> EpisodeBuilder:
@@ -241,16 +267,25 @@ def _metrics(ctx: ServiceContext):
     }
 
 
-def _load_weights(weights: WeightsClient, policy, mx) -> None:
-    """Pull a newer version if one was announced; a blob that does not fit is counted and skipped."""
+def _load_weights(weights: WeightsClient, policy, mx, counts: dict, depth_image: bool = False) -> None:
+    """Pull a newer version if one was announced; a blob that does not fit, or that wants the depth
+    image from an actor that does not render it, is counted and skipped (the old weights stay)."""
     blob = weights.poll()
     if blob is None:
         return
     try:
+        from services.learner.core.policy import PolicySpec  # torch: only for learned actors
+
+        observation = PolicySpec.from_json(blob.config_json).observation
+        if observation == "depth" and not depth_image:
+            raise ValueError("a depth-image policy needs an actor started with --depth-image")
         policy.load(blob)
     except ValueError as exc:
         mx["bad_weights"].inc()
         log.error("weights not loaded", extra={"version": blob.version, "error": str(exc)[:300]})
+        return
+    # for `mea bench system`: which version, and when (wall clock) it became the acting policy
+    counts["weights_version"], counts["weights_loaded_at"] = blob.version, time.time()
 
 
 def run(cfg: ActorConfig, bus_factory=None) -> int:
@@ -301,7 +336,7 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
             if gate is not None:
                 mx["gate_wait"].inc(gate.wait(ctx.shutdown))
             if weights is not None:
-                _load_weights(weights, policy, mx)
+                _load_weights(weights, policy, mx, counts, cfg.depth_image)
                 if not policy.ready:  # no weights yet: wait for the learner's first version
                     ctx.shutdown.wait(0.2)
                     continue
@@ -321,11 +356,29 @@ def main(argv: Sequence[str]) -> int:
 
 
 def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
-    """Arguments `mea run` passes to actor ``index``."""
-    args = ["--task", run_cfg.task, "--index", str(index), "--policy", "random"]
-    if index == 0 and run_cfg.demos:
+    """Arguments `mea run` passes to actor ``index``: the learned policy when the run has a learner
+    (random otherwise), demonstrations from actor 0 only (not again on resume), the rendered depth
+    image for the equirsac variant, and a seed base that moves on with every resume so that no
+    training seed repeats (run seed s, resume r: s * 1e8 + r * 1e5; evaluation seeds are >= 1e9)."""
+    policy = "learned" if "learner" in run_cfg.services else "random"
+    args = ["--task", run_cfg.task, "--index", str(index), "--policy", policy,
+            "--seed-base", str(run_cfg.seed * 10**8 + run_cfg.resumes * 10**5)]  # fmt: skip
+    if index == 0 and run_cfg.demos and run_cfg.resume is None:
         args += ["--demos", str(run_cfg.demos)]
+    if run_cfg.variant == "equirsac":
+        args += ["--depth-image"]
+    if not run_cfg.follow_gate:
+        args += ["--no-follow-gate"]
     return args
 
 
-__all__ = ["Actor", "ActorConfig", "launch_args", "main", "run", "run_episode"]
+__all__ = [
+    "Actor",
+    "ActorConfig",
+    "launch_args",
+    "main",
+    "policy_image",
+    "policy_input",
+    "run",
+    "run_episode",
+]

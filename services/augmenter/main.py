@@ -501,8 +501,16 @@ def main(argv: Sequence[str]) -> int:
 
 
 def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
-    """Arguments `mea run` passes to augmenter ``index`` (one augmenter, defaults, for now)."""
-    return []
+    """Arguments `mea run` passes to augmenter ``index``: what the run's variant augments.
+
+    mea: voxel projection, isometric x4 + MEA x6 on demos (``--mea-on`` may extend it);
+    equiobs: voxel projection, isometric x4; equirsac: the rendered depth image, isometric x4."""
+    args = ["--augment.seed", str(run_cfg.seed)]
+    if run_cfg.variant == "mea":
+        return args + ["--augment.mea-on", run_cfg.mea_on or "demos"]
+    if run_cfg.variant == "equiobs":
+        return args + ["--augment.mea-on", "none"]
+    return args + ["--augment.mea-on", "none", "--augment.observation", "depth"]
 
 
 __all__ = [

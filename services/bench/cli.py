@@ -25,6 +25,16 @@ BENCHES: dict[str, tuple[str, str, str]] = {
         "LearnerBenchConfig",
         "gradient updates/s per preset, replay memory, weights publish -> loaded latency",
     ),
+    "learning": (
+        "services.bench.learning",
+        "LearningBenchConfig",
+        "train EquiRSAC / EquiObs / MEA variants: success at budget, improvement timestep, curves",
+    ),
+    "system": (
+        "services.bench.system",
+        "SystemBenchConfig",
+        "raw vs full-stack env steps/s, augmenter and learner rates, weights publish -> loaded",
+    ),
     "tasks": (
         "services.bench.tasks",
         "TasksBenchConfig",

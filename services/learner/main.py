@@ -107,6 +107,8 @@ class LearnerConfig:
     """Continue from run_dir/checkpoints if there is a checkpoint there."""
     max_updates: int = 0
     """Stop after this many updates (0: until stopped)."""
+    max_env_steps: int = 0
+    """Env-step budget of the run: the replay gate never allows more (actors stop there); 0: none."""
     threads: int = 0
     """torch intra-op threads (0: torch's default)."""
     seed: int = 0
@@ -150,6 +152,18 @@ PRESETS = {
         error_buffer=100.0,
         publish_every=5,
         checkpoint_minutes=5.0,
+    ),
+    # smoke: the cpu-small networks at the smallest useful batch, for end-to-end tests of the stack
+    # (weights versions every 2 updates); it does not learn anything in the time it runs.
+    "smoke": LearnerConfig(
+        net=NET_PRESETS["cpu-small"],
+        batch_size=2,
+        samples_per_insert=0.5,
+        replay_capacity=5_000,
+        min_steps=50,
+        error_buffer=50.0,
+        publish_every=2,
+        checkpoint_minutes=0.0,
     ),
 }
 
@@ -277,6 +291,8 @@ class Learner:
         with self.lock:
             inserted = self.env_steps
             allowed = inserted + max(0, self.limiter.inserts_allowed())
+            if self.cfg.max_env_steps:
+                allowed = max(inserted, min(allowed, self.cfg.max_env_steps))
             replay_n, samples_allowed = len(self.replay), self.limiter.samples_allowed()
             can_sample = self.limiter.can_sample()
         self.mx["env_steps"].set(inserted)
@@ -487,20 +503,16 @@ def main(argv: Sequence[str]) -> int:
 
 
 def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
-    """Arguments `mea run` passes to the learner: the cpu-small preset, Equi-RSAC's group per task (C4
-    for Block Pull, D4 for the others), one torch thread (it shares the cores with the actors and the
-    augmenter; two OpenMP threads on a busy 2-core machine wait on each other), state under run_dir."""
+    """Arguments `mea run` passes to the learner: its preset, Equi-RSAC's group per task (C4 for Block
+    Pull, D4 for the others), the variant's observation, the run's env-step budget, one torch thread
+    (it shares the cores with actors and augmenter; two OpenMP threads on a busy 2-core machine wait
+    on each other), state under run_dir/learner, ``--resume`` when the run is resumed."""
     group = "c4" if run_cfg.task == "block_pull" else "d4"
-    return [
-        "--preset",
-        "cpu-small",
-        "--net.group",
-        group,
-        "--threads",
-        "1",
-        "--run-dir",
-        str(run_dir / "learner"),
-    ]
+    args = ["--preset", run_cfg.learner_preset, "--net.group", group, "--threads", "1",
+            "--observation", "depth" if run_cfg.variant == "equirsac" else "voxel",
+            "--max-env-steps", str(run_cfg.env_steps), "--seed", str(run_cfg.seed),
+            "--run-dir", str(run_dir / "learner")]  # fmt: skip
+    return args + (["--resume"] if run_cfg.resume is not None else [])
 
 
 __all__ = ["Learner", "LearnerConfig", "PRESETS", "launch_args", "main", "run"]

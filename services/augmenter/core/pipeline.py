@@ -7,6 +7,18 @@ rotated copies (4); MEA makes ``mea_copies`` (6) per demonstration by default, a
 of one episode share a single isometric rotation (G_t x G). Each copy's draws come from
 ``np.random.default_rng([seed, copy_index])`` with the seed recorded in its provenance, so any copy
 can be regenerated from its source episode.
+
+Observations (``AugmentSettings.observation``)
+    ``voxel`` (EquiObs, MEA): every output's images are re-projected from its (rotated) point clouds.
+    ``depth`` (the Equi-RSAC baseline, ``equirsac``): the raw episode must carry the rendered depth
+    images (``Episode.images`` (T+1, 1, N, N) float, as the actor records them with
+    ``--depth-image``); every output gets ``depth_image.policy_images`` of them, the isometric copies
+    rotated by their own angle with ``depth_image.rotate_images`` (the copy's points, actions and
+    privileged poses are rotated by the same angle, as for voxel). A rendered image cannot be
+    re-rendered for a transformed scene, and the paper's Equi-RSAC baseline has no MEA, so ``depth``
+    requires ``mea_on="none"`` (checked at construction rather than silently ignored, so a run
+    configured with MEA on depth images fails loudly). ``reproject`` does not apply to ``depth``:
+    its images are always attached (nothing downstream could make them).
 """
 
 from __future__ import annotations
@@ -19,6 +31,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from proto.episode import Episode
+from services.augmenter.core.depth_image import (
+    DEFAULT_DEPTH_SPEC,
+    DepthImageSpec,
+    policy_images,
+    rotate_images,
+)
 from services.augmenter.core.isometric import compose_with_mea, isometric_copy
 from services.augmenter.core.mea import MeaSettings, augment
 from services.augmenter.core.projection import (
@@ -28,6 +46,8 @@ from services.augmenter.core.projection import (
 )
 
 MEA_ON = ("demos", "successes", "all", "none")
+OBSERVATIONS = ("voxel", "depth")
+"""Policy images: voxel projection of the point clouds, or the rendered depth image (Equi-RSAC)."""
 
 
 @dataclass(frozen=True)
@@ -43,17 +63,27 @@ class AugmentSettings:
     isometric_on_mea: bool = True
     """Rotate all MEA copies of an episode by one shared random angle (G_t x G)."""
     reproject: bool = True
-    """Attach voxel-projected images (depth + jaw, uint8) to every output episode."""
+    """Attach voxel-projected images (depth + jaw, uint8) to every output episode (voxel only: depth
+    always attaches its images)."""
     seed: int = 0
     """Base seed; each source episode's seed mixes it with a hash of the episode id."""
     mea: MeaSettings = field(default_factory=MeaSettings)
     """MEA phases, group ranges and feasibility limits."""
     projection: ProjectionSpec = field(default_factory=ProjectionSpec)
     """Voxel projection of the observations."""
+    observation: str = "voxel"
+    """Policy images: voxel (projected point clouds) or depth (the actor's rendered image, needs
+    actors run with --depth-image; no MEA: requires mea_on none)."""
 
     def __post_init__(self) -> None:
         if self.mea_on not in MEA_ON:
             raise ValueError(f"mea_on must be one of {MEA_ON}, not {self.mea_on!r}")
+        if self.observation not in OBSERVATIONS:
+            raise ValueError(f"observation must be one of {OBSERVATIONS}, not {self.observation!r}")
+        if self.observation == "depth" and self.mea_on != "none":
+            raise ValueError(
+                f"observation 'depth' (the Equi-RSAC baseline) has no MEA: set mea_on 'none', not {self.mea_on!r}"
+            )
         if self.mea_copies < 0 or self.isometric_copies < 0:
             raise ValueError("copy counts must be >= 0")
 
@@ -87,10 +117,45 @@ def with_images(ep: Episode, spec: ProjectionSpec) -> Episode:
     return dataclasses.replace(ep, images=quantized_observations(points, ep.jaw, spec, valid))
 
 
+def depth_policy_images(ep: Episode, spec: DepthImageSpec = DEFAULT_DEPTH_SPEC) -> np.ndarray:
+    """The uint8 policy stack (T+1, 2, N, N) of an episode carrying rendered depth images
+    (``images`` (T+1, 1, N, N) float, as recorded by the actor); ValueError naming ``images`` otherwise."""
+    images = ep.images
+    n = spec.size
+    if images is None:
+        raise ValueError(
+            f"images: episode {ep.episode_id} carries no rendered depth images (observation 'depth' needs "
+            "actors started with --depth-image)"
+        )
+    if images.ndim != 4 or images.shape[1:] != (1, n, n) or images.dtype.kind != "f":
+        raise ValueError(
+            f"images: episode {ep.episode_id} must carry float depth images (T+1, 1, {n}, {n}), "
+            f"got {images.dtype} {images.shape}"
+        )
+    return policy_images(images[:, 0].astype(np.float32), ep.jaw, spec)
+
+
+def _augment_depth(raw: Episode, s: AugmentSettings, seed: int) -> list[Episode]:
+    """``observation == "depth"``: the raw episode and its isometric copies, each with the raw
+    episode's policy images rotated by the copy's angle (drawn exactly as for voxel)."""
+    codes = depth_policy_images(raw)
+    out = [dataclasses.replace(raw, images=codes)]
+    for k in range(s.isometric_copies):
+        phi = float(np.random.default_rng([seed, k]).uniform(0, 2 * math.pi))
+        copy = isometric_copy(raw, phi, seed=seed, copy_index=k, episode_id=f"{raw.episode_id}.iso{k}")
+        out.append(dataclasses.replace(copy, images=rotate_images(codes, phi)))
+    return out
+
+
 def augment_episode(raw: Episode, s: AugmentSettings) -> tuple[list[Episode], AugmentStats]:
     """The raw episode followed by its isometric copies and MEA copies."""
     stats = AugmentStats()
     seed = episode_seed(s.seed, raw.episode_id)
+    if s.observation == "depth":
+        out = _augment_depth(raw, s, seed)
+        stats.outputs = len(out)
+        stats.transitions = sum(e.num_steps for e in out)
+        return out, stats
     out = [raw]
     for k in range(s.isometric_copies):
         phi = float(np.random.default_rng([seed, k]).uniform(0, 2 * math.pi))

@@ -72,10 +72,15 @@ class PolicyRuntime:
         spec = PolicySpec.from_json(blob.config_json)
         actor = self.actor if spec == self.spec and self.actor is not None else build_actor(spec.net)
         state = {k: torch.from_numpy(np.array(v)) for k, v in blob.tensors.items()}
-        try:
-            actor.load_state_dict(state, strict=True)
-        except RuntimeError as exc:
-            raise ValueError(f"weights v{blob.version} do not fit the network: {exc}") from exc
+        # check every name and shape first: load_state_dict copies the tensors that fit before it
+        # raises on those that do not, which would leave the running policy half-overwritten
+        expected = {k: tuple(v.shape) for k, v in actor.state_dict().items()}
+        got = {k: tuple(v.shape) for k, v in state.items()}
+        if got != expected:
+            wrong = sorted(k for k in expected.keys() | got.keys() if expected.get(k) != got.get(k))
+            raise ValueError(f"weights v{blob.version} do not fit the network: {len(wrong)} tensors differ "
+                             f"(e.g. {wrong[:3]})")  # fmt: skip
+        actor.load_state_dict(state, strict=True)
         actor.eval()
         self.actor, self.spec, self.version = actor, spec, blob.version
 

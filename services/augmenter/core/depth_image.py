@@ -1,0 +1,178 @@
+"""The `equirsac` variant's policy images: the rendered top-down depth image, quantised and rotated.
+
+The public Equi-RSAC observation is a gripper-centred, top-down, (nearly) orthographic depth image
+rendered by the simulator (``services.actor.tasks.camera.render_gripper_depth``); the actor records
+it as ``Episode.images`` (T+1, 1, N, N) float16. This module turns it into the uint8 policy stack the
+learner's replay stores, exactly like the voxel path does (``projection.quantized_observations``),
+and applies the public code's isometric augmentation to it: one continuous rotation per copy.
+Pure numpy + OpenCV: no simulator, transport or metrics.
+
+Values and quantisation (``DepthImageSpec``)
+    A rendered pixel is the depth (m) below a horizontal plane 6 cm above the gripper pivot, clipped
+    to ``[0, far]`` with ``far = 0.5`` (``render_gripper_depth``'s default): 0 is the plane itself
+    (the painted fingers are 0, the public convention), ``far`` is "nothing seen" (the tiny renderer
+    does not draw the floor, so the background is the clip value). The pivot stays at most ~0.43 m
+    above the floor (workspace tip height <= 0.25 m + ~0.18 m pivot-to-tip), so every object, down to
+    the floor, is at depth < 0.49 m: the range ``[0, far]`` holds the whole workspace. Codes are
+    linear, ``q = round(clip(d, 0, far) / far * 255)``, step ``far / 255`` ~ 1.96 mm, error <= half a
+    step. No code is reserved: unlike the voxel image (0 = empty column) every pixel of a rendered
+    image has a depth, and both 0 and 255 are real values. Because the map is affine with no
+    reserved value, interpolating codes is the same as interpolating depths (see below).
+
+Channels
+    ``policy_images`` stacks channel 0 = depth codes, channel 1 = jaw code ``round(clip(jaw, 0, 1) *
+    255)`` tiled, computed exactly as ``projection.quantized_observations`` does (float32 jaw first),
+    so the learner's replay (which stores channel 1 as one byte per image) accepts either path.
+
+Rotation (``rotate_images``), the public augmentation without its pitfall P3
+    The public code rotates channel 0 with ``scipy.ndimage.affine_transform(order=1, mode='nearest')``
+    about pixel (42, 42); here the pivot is the true image centre ``c = (N - 1) / 2`` (41.5 for 84
+    px: the gripper sits on the corner between the four centre pixels, as in the voxel projection),
+    with bilinear interpolation and edge-replicated borders (``cv2.warpAffine``, INTER_LINEAR,
+    BORDER_REPLICATE). Direction: image rows follow world +x and columns +y, and a world rotation by
+    +phi about the vertical, ``(x, y) -> (x cos phi - y sin phi, x sin phi + y cos phi)``, is the
+    image map ``out[i', j'] = in[i, j]`` with
+
+        i - c =  cos(phi) (i' - c) + sin(phi) (j' - c)
+        j - c = -sin(phi) (i' - c) + cos(phi) (j' - c)
+
+    which at phi = +90 degrees is ``np.rot90(image, k=1)`` (pixel (i, j) goes to (N - 1 - j, i)), the
+    convention the simulator test ``tests/unit/test_rotation_convention.py`` pins for both the voxel
+    and the rendered image. The (dx, dy) actions of a copy are rotated by the same phi
+    (``isometric.rotate_actions``). The warp runs on the codes as float32 and rounds once at the end:
+    since codes are affine in depth with no reserved value, this is exactly "dequantise, interpolate
+    the depths, quantise again" without the float round trip, and float32 keeps OpenCV's 8-bit
+    fixed-point weights out of it. OpenCV snaps source coordinates to 1/32 px; at multiples of 90 degrees they are integers, so
+    the result is ``np.rot90`` bit for bit. The jaw channel is left unchanged (rotation-invariant).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = ["DepthImageSpec", "DEFAULT_DEPTH_SPEC", "depth_codes", "dequantize_depth", "policy_images",
+           "rotate_images", "rotation_matrix"]  # fmt: skip
+
+DEPTH_CHANNEL = 0
+"""Index of the depth codes in a policy stack (T, 2, N, N) (same as the voxel path)."""
+JAW_CHANNEL = 1
+"""Index of the tiled jaw code in a policy stack (T, 2, N, N) (same as the voxel path)."""
+_CV_MAX_CHANNELS = 512
+"""OpenCV's channel limit (CV_CN_MAX): frames are warped in groups of at most this many."""
+
+
+@dataclass(frozen=True)
+class DepthImageSpec:
+    """Size and depth range of the rendered baseline image (all lengths in metres)."""
+
+    size: int = 84
+    """N: pixels per image side (the public Equi-RSAC image, 0.4 m wide)."""
+    far: float = 0.5
+    """Depth (m) of code 255: the renderer's clip depth (``render_gripper_depth(far=0.5)``), i.e.
+    "nothing seen"; depths are clipped to [0, far]. Covers the whole workspace (module docstring)."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.size, bool) or not isinstance(self.size, int | np.integer) or self.size < 2:
+            raise ValueError(f"size must be an int >= 2, got {self.size!r}")
+        object.__setattr__(self, "size", int(self.size))
+        if not (isinstance(self.far, int | float | np.floating) and math.isfinite(self.far) and self.far > 0):
+            raise ValueError(f"far must be a finite number > 0, got {self.far!r}")
+        object.__setattr__(self, "far", float(self.far))
+
+    @property
+    def quant_step(self) -> float:
+        """Depth of one code step: far / 255 (m); the quantisation error is at most half of it."""
+        return self.far / 255.0
+
+    @property
+    def centre(self) -> float:
+        """Pixel coordinate of the image centre, the rotation pivot: (N - 1) / 2."""
+        return (self.size - 1) / 2.0
+
+
+DEFAULT_DEPTH_SPEC = DepthImageSpec()
+"""The public geometry: 84 x 84 px, depths 0 .. 0.5 m."""
+
+
+def depth_codes(depth: np.ndarray, spec: DepthImageSpec = DEFAULT_DEPTH_SPEC) -> np.ndarray:
+    """Depths (..., N, N) (m, any float dtype) -> uint8 codes ``round(clip(d, 0, far) / far * 255)``.
+
+    Arithmetic in float64. For d in [0, far], ``|dequantize_depth(q) - d| <= far / 510`` (~0.98 mm).
+    """
+    d = np.asarray(depth, dtype=np.float64)
+    if d.ndim < 2 or d.shape[-2:] != (spec.size, spec.size):
+        raise ValueError(f"depth must have shape (..., {spec.size}, {spec.size}), got {d.shape}")
+    if not np.all(np.isfinite(d)):
+        raise ValueError("depth images must be finite")
+    return np.rint(np.clip(d, 0.0, spec.far) * (255.0 / spec.far)).astype(np.uint8)
+
+
+def dequantize_depth(codes: np.ndarray, spec: DepthImageSpec = DEFAULT_DEPTH_SPEC) -> np.ndarray:
+    """uint8 codes -> float32 depths ``q * far / 255`` (m)."""
+    return (np.asarray(codes, dtype=np.float64) * spec.quant_step).astype(np.float32)
+
+
+def policy_images(
+    depth: np.ndarray, jaw: np.ndarray, spec: DepthImageSpec = DEFAULT_DEPTH_SPEC
+) -> np.ndarray:
+    """(T, N, N) depths and (T,) jaw openings -> (T, 2, N, N) uint8 policy stack.
+
+    Channel 0: ``depth_codes``; channel 1: the jaw code ``round(clip(jaw, 0, 1) * 255)`` tiled, with
+    the jaw first cast to float32 as ``projection.quantized_observations`` does (identical codes).
+    """
+    d = np.asarray(depth)
+    if d.ndim != 3:
+        raise ValueError(f"depth must have shape (T, {spec.size}, {spec.size}), got {d.shape}")
+    jaw32 = np.asarray(jaw, dtype=np.float32)
+    if jaw32.shape != d.shape[:1]:
+        raise ValueError(f"jaw must have shape {d.shape[:1]}, got {jaw32.shape}")
+    out = np.empty((d.shape[0], 2, spec.size, spec.size), np.uint8)
+    out[:, DEPTH_CHANNEL] = depth_codes(d, spec)
+    out[:, JAW_CHANNEL] = np.rint(np.clip(jaw32.astype(np.float64), 0.0, 1.0) * 255.0)[:, None, None]
+    return out
+
+
+def rotation_matrix(phi: float, size: int) -> np.ndarray:
+    """The 2x3 inverse map (destination -> source pixel) in OpenCV's (x = column, y = row) order for a
+    world rotation by ``phi`` about the image centre ``c = (size - 1) / 2``::
+
+        src_col = cos(phi) col' - sin(phi) row' + c (1 - cos(phi) + sin(phi))
+        src_row = sin(phi) col' + cos(phi) row' + c (1 - cos(phi) - sin(phi))
+
+    (the module docstring's equations with rows = i, columns = j).
+    """
+    c, s = math.cos(phi), math.sin(phi)
+    ctr = (size - 1) / 2.0
+    return np.array([[c, -s, ctr * (1.0 - c + s)], [s, c, ctr * (1.0 - c - s)]], np.float64)
+
+
+def rotate_images(images: np.ndarray, phi: float) -> np.ndarray:
+    """Policy stacks (T, 2, N, N) uint8 seen in a world rotated by ``phi`` (rad) about the vertical.
+
+    Channel 0 is warped about the exact centre (N - 1) / 2, bilinear, edges replicated, and rounded
+    to the nearest code; channel 1 (jaw) is copied. ``phi = pi / 2`` gives ``np.rot90(k=1)`` over the
+    image axes. Returns a new array.
+    """
+    x = np.asarray(images)
+    if x.dtype != np.uint8 or x.ndim != 4 or x.shape[1] != 2 or x.shape[2] != x.shape[3]:
+        raise ValueError(f"images must be uint8 of shape (T, 2, N, N), got {x.dtype} {x.shape}")
+    if not math.isfinite(phi):
+        raise ValueError(f"phi must be finite, got {phi!r}")
+    T, _, N, _ = x.shape
+    out = x.copy()
+    if T == 0:
+        return out
+    M = rotation_matrix(float(phi), N)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    for t0 in range(0, T, _CV_MAX_CHANNELS):
+        frames = np.ascontiguousarray(
+            x[t0 : t0 + _CV_MAX_CHANNELS, DEPTH_CHANNEL].transpose(1, 2, 0), np.float32
+        )
+        warped = cv2.warpAffine(frames, M, (N, N), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        warped = warped.reshape(N, N, -1)  # a single frame comes back without its channel axis
+        out[t0 : t0 + _CV_MAX_CHANNELS, DEPTH_CHANNEL] = np.clip(np.rint(warped), 0, 255).transpose(2, 0, 1)
+    return out

@@ -1,0 +1,204 @@
+"""`mea bench system`: what the whole stack costs and delivers on this machine.
+
+1. **Raw simulator**: ``--actors`` spawned processes step their env with random actions (physics +
+   observation, no transport), for ``--seconds``; total and per-process steps/s.
+2. **Full stack**: ``mea run`` (router, the same number of actors with the learned policy, augmenter,
+   learner, evaluator; the mea variant, the cpu-small learner) for ``--seconds`` after a warm-up.
+   Actors ignore the replay gate here (``--no-follow-gate``), so their rate shows the pipeline's
+   overhead rather than the learner's update budget. From the services' heartbeats (a Zenoh
+   client on the launcher's router): env steps/s (overhead against the raw rate in %),
+   augmented transitions/s, learner updates/s and the fraction of wall time the learner waited for
+   the limiter or data, and, for every weights version, the time from its creation to its load by
+   each consumer (actors and evaluator report it in their heartbeats): p50/p99.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.bench.report import emit
+from services.bench.transport import _pct, free_port
+
+
+@dataclass(frozen=True)
+class SystemBenchConfig:
+    """Raw simulator vs full-stack env steps/s, augmenter and learner rates, weights latency."""
+
+    task: str = "block_pull"
+    actors: int = 1
+    """Actor processes (raw and full stack alike)."""
+    seconds: float = 120.0
+    """Measurement window of each part."""
+    warmup_seconds: float = 60.0
+    """Full stack: time before the window (start-up, demos, first weights)."""
+    run_dir: Path = Path("runs/bench-system")
+    json: bool = False
+    """Print exactly one JSON object instead of tables."""
+
+
+def _log(msg: str) -> None:
+    print(f"[bench system] {msg}", file=sys.stderr, flush=True)
+
+
+def raw_sim_main(task: str, index: int, seconds: float, results) -> None:
+    try:
+        from services.actor.tasks import EnvSettings, make_env
+
+        env = make_env(task, EnvSettings())
+        rng = np.random.default_rng(index)
+        env.reset(index)
+        steps, t0 = 0, time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            _, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 5))
+            steps += 1
+            if terminated or truncated:
+                env.reset(index * 1000 + steps)
+        results.put(("done", steps, time.monotonic() - t0))
+        env.close()
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent
+        results.put(("error", repr(exc)))
+
+
+def bench_raw(cfg: SystemBenchConfig) -> dict[str, Any]:
+    ctx = mp.get_context("spawn")
+    results = ctx.Queue()
+    procs = [ctx.Process(target=raw_sim_main, args=(cfg.task, i, cfg.seconds, results), daemon=True)
+             for i in range(cfg.actors)]  # fmt: skip
+    for p in procs:
+        p.start()
+    rates = []
+    for _ in procs:
+        item = results.get(timeout=cfg.seconds + 120)
+        if item[0] == "error":
+            raise RuntimeError(f"raw simulator process failed: {item[1]}")
+        rates.append(item[1] / item[2])
+    for p in procs:
+        p.join(10)
+    return {"actors": cfg.actors, "env steps/s (total)": sum(rates), "per process": sum(rates) / len(rates)}
+
+
+def _connect(port: int, proc: subprocess.Popen):
+    from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
+
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            return ZenohBus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
+        except Exception:  # noqa: BLE001 - the launcher's router is not up yet
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise RuntimeError("mea run did not come up") from None
+            time.sleep(0.5)
+
+
+class Collector:
+    """First and last heartbeat of each instance inside the window; weights creation and loads."""
+
+    def __init__(self, start: float) -> None:
+        self.start = start
+        self.first: dict[tuple[str, str], tuple[float, dict]] = {}
+        self.last: dict[tuple[str, str], tuple[float, dict]] = {}
+        self.created: dict[int, float] = {}
+        self.loads: dict[tuple[str, str], dict[int, float]] = defaultdict(dict)
+
+    def beat(self, hb, now: float) -> None:
+        who = (hb.service, hb.instance_id)
+        c = hb.counters
+        if "weights_version" in c and "weights_loaded_at" in c:
+            self.loads[who].setdefault(int(c["weights_version"]), c["weights_loaded_at"])
+        if now >= self.start:
+            self.first.setdefault(who, (hb.created_at, dict(c)))
+            self.last[who] = (hb.created_at, dict(c))
+
+    def rate(self, service: str, key: str) -> float | None:
+        total, found = 0.0, False
+        for who, (t1, c1) in self.last.items():
+            if who[0] == service and key in c1 and self.first[who][0] < t1:
+                t0, c0 = self.first[who]
+                total += (c1[key] - c0.get(key, 0.0)) / (t1 - t0)
+                found = True
+        return total if found else None
+
+    def latencies(self) -> list[float]:
+        return [t - self.created[v] for per in self.loads.values() for v, t in per.items()
+                if v in self.created and v > 0]  # fmt: skip
+
+
+def bench_stack(cfg: SystemBenchConfig) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    from proto.topics import STATUS, WEIGHTS_ANNOUNCE
+
+    port = free_port()
+    cmd = [sys.executable, "-m", "services.cli", "run", "--task", cfg.task, "--actors", str(cfg.actors),
+           "--demos", "2", "--env-steps", "0", "--no-follow-gate", "--listen", f"tcp/127.0.0.1:{port}",
+           "--metrics-port", "0", "--run-dir", str(cfg.run_dir / f"stack-{int(time.time())}"),
+           "--duration-seconds", str(cfg.warmup_seconds + cfg.seconds + 5), "--log-format", "json"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    bus = None
+    col = Collector(time.monotonic() + cfg.warmup_seconds)
+    try:
+        bus = _connect(port, proc)
+        beats = bus.subscribe(STATUS, capacity=8192)
+        announces = bus.subscribe(WEIGHTS_ANNOUNCE, capacity=8192)
+        _log(f"full stack: warm-up {cfg.warmup_seconds:.0f} s, then {cfg.seconds:.0f} s measured ...")
+        while time.monotonic() < col.start + cfg.seconds:
+            if proc.poll() is not None:
+                raise RuntimeError(f"mea run exited early ({proc.returncode})")
+            for d in announces.drain():
+                col.created[d.message.version] = d.message.created_at
+            now = time.monotonic()
+            for d in beats.drain():
+                col.beat(d.message, now)
+            time.sleep(0.2)
+    finally:
+        if bus is not None:
+            bus.close()
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+    learner = [w for w in col.last if w[0] == "learner"]
+    wait_fraction = None
+    if learner:
+        (t0, c0), (t1, c1) = col.first[learner[0]], col.last[learner[0]]
+        if t1 > t0:
+            wait_fraction = (c1.get("wait_seconds", 0.0) - c0.get("wait_seconds", 0.0)) / (t1 - t0)
+    latencies = col.latencies()
+    row = {
+        "actors": cfg.actors, "env steps/s": col.rate("actor", "env_steps"),
+        "augmented transitions/s": col.rate("augmenter", "transitions_out"),
+        "learner updates/s": col.rate("learner", "updates"), "learner waiting (fraction of wall time)": wait_fraction,
+    }  # fmt: skip
+    lat = [{
+        "consumers": len(col.loads), "versions loaded": sum(len(v) for v in col.loads.values()),
+        "publish -> loaded p50 ms": 1e3 * _pct(latencies, 50) if latencies else None,
+        "p99 ms": 1e3 * _pct(latencies, 99) if latencies else None,
+    }]  # fmt: skip
+    return row, lat
+
+
+def run(cfg: SystemBenchConfig) -> dict:
+    started = time.monotonic()
+    _log(f"raw simulator: {cfg.actors} process(es), {cfg.seconds:.0f} s ...")
+    raw = bench_raw(cfg)
+    stack, latency = bench_stack(cfg)
+    if stack["env steps/s"]:
+        stack["overhead vs raw %"] = 100.0 * (1.0 - stack["env steps/s"] / raw["env steps/s (total)"])
+    sections = {"raw simulator": [raw], "full stack (mea run)": [stack], "weights publish -> loaded": latency}
+    meta = {"task": cfg.task, "seconds": cfg.seconds, "warmup_seconds": cfg.warmup_seconds,
+            "total_minutes": round((time.monotonic() - started) / 60, 1),
+            "stack": "mea variant, cpu-small learner (1 thread), evaluator, actors ignoring the replay gate"}  # fmt: skip
+    return emit(
+        "system", sections, measured={"env_steps_per_second": raw["per process"]}, as_json=cfg.json, meta=meta
+    )

@@ -1,0 +1,294 @@
+"""Evaluation metrics, the eval history file, and learning curves across seeds (numpy and stdlib only).
+
+Kept free of transport, metrics and the simulator so that both the evaluator service and ``mea plot``
+(and their tests) use exactly the same definitions.
+
+Per episode
+    ``success`` (the episode terminated, i.e. the sparse reward fired), ``length`` H (env steps taken)
+    and the undiscounted ``ret``. The paper's grasp score is ``s_g = (H_max - H) / H_max`` on success
+    and 0 on failure, with ``H_max`` the time limit (50 steps): a faster success scores higher. (The
+    GASv2 evaluation code computes it in this order; the MEA paper prints the terms swapped.)
+
+Per evaluation
+    :func:`summarize` averages M episodes: success rate, mean return, mean length, mean grasp score.
+
+Improvement timestep (MEA paper, EquiObs ablation)
+    "the first step after which the mean success stays > 0". Defined here exactly as: order a run's
+    evaluations by ``env_steps``; the improvement timestep is the ``env_steps`` of the earliest
+    evaluation from which *every* evaluation up to the end of the run has ``success_rate > 0``.
+    It is ``None`` when the last evaluation has success 0 (including "never > 0") or there are no
+    evaluations. A single evaluation with success > 0 gives its own ``env_steps``. Applied to a
+    mean-over-seeds curve it is the paper's definition; :func:`improvement_timestep` takes any
+    (steps, values) pair.
+
+Eval history (``RUN_DIR/eval/history.jsonl``)
+    One JSON object per evaluation, appended (and fsynced) as each evaluation finishes. A line that
+    does not parse (typically a last line truncated by a crash) is skipped with a logged warning,
+    never an error; :func:`append_history` first terminates such a partial line so the next record
+    starts on its own line.
+
+Curves across runs (seeds)
+    :func:`curve` turns a history into (env_steps, value) sorted by env_steps, dropping records with
+    unknown steps (< 0) and keeping only the last record of repeated env_steps. :func:`align` puts
+    several curves on a common grid (default: the union of all evaluation steps) either by *step-wise
+    hold* (the value of the last evaluation at or before the grid point: what the policy was known to
+    achieve) or by *linear interpolation* between evaluations; a grid point before a run's first or
+    after its last evaluation is NaN for that run, so no run is extrapolated. :func:`mean_std` then
+    reduces across runs, ignoring NaNs, with the number of runs contributing to each point.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+H_MAX = 50
+"""The tasks' time limit in steps (the paper's H_max)."""
+
+INTERPOLATIONS = ("hold", "linear")
+
+
+# --------------------------------------------------------------------------------------------
+# per episode and per evaluation
+# --------------------------------------------------------------------------------------------
+
+
+def grasp_score(success: bool, length: int, h_max: int = H_MAX) -> float:
+    """The paper's s_g = (H_max - H) / H_max on success, 0 on failure (clipped to [0, 1])."""
+    if h_max <= 0:
+        raise ValueError(f"h_max must be positive, got {h_max}")
+    if not success:
+        return 0.0
+    return float(min(1.0, max(0.0, (h_max - length) / h_max)))
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """What an evaluation keeps of one episode."""
+
+    success: bool
+    length: int
+    """H: env steps taken."""
+    ret: float
+    """Undiscounted return."""
+    seed: int | None = None
+
+
+def episode_result(
+    rewards: Sequence[float], terminated: Sequence[bool], seed: int | None = None
+) -> EpisodeResult:
+    """An episode's result from its per-step rewards and terminal flags (success = the last step terminated)."""
+    if len(rewards) != len(terminated):
+        raise ValueError(f"{len(rewards)} rewards for {len(terminated)} terminal flags")
+    success = bool(len(terminated) > 0 and terminated[-1])
+    return EpisodeResult(success, len(rewards), float(np.sum(np.asarray(rewards, np.float64))), seed)
+
+
+@dataclass(frozen=True)
+class EvalSummary:
+    """One evaluation of one policy version over M episodes."""
+
+    episodes: int
+    success_rate: float
+    mean_return: float
+    mean_length: float
+    grasp_score: float
+    """Mean of s_g over the episodes (failures count as 0)."""
+
+
+def summarize(results: Sequence[EpisodeResult], h_max: int = H_MAX) -> EvalSummary:
+    """Average M episode results (M >= 1)."""
+    if not results:
+        raise ValueError("no episodes to summarize")
+    n = len(results)
+    return EvalSummary(
+        episodes=n,
+        success_rate=sum(r.success for r in results) / n,
+        mean_return=float(np.mean([r.ret for r in results])),
+        mean_length=float(np.mean([r.length for r in results])),
+        grasp_score=float(np.mean([grasp_score(r.success, r.length, h_max) for r in results])),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# improvement timestep
+# --------------------------------------------------------------------------------------------
+
+
+def improvement_timestep(steps: Sequence[float], values: Sequence[float]) -> float | None:
+    """The steps of the earliest evaluation from which every later one (by steps) has value > 0.
+
+    ``None`` when there are no evaluations or the last one is not > 0. Evaluations are ordered by
+    ``steps`` (stably, so equal steps keep their given order)."""
+    s = np.asarray(steps, dtype=np.float64)
+    v = np.asarray(values, dtype=np.float64)
+    if s.shape != v.shape or s.ndim != 1:
+        raise ValueError(f"steps {s.shape} and values {v.shape} must be equal-length 1-D")
+    order = np.argsort(s, kind="stable")
+    s, v = s[order], v[order]
+    i = len(v)
+    while i > 0 and v[i - 1] > 0:  # NaN is not > 0: a gap breaks the streak
+        i -= 1
+    if i == len(v):
+        return None
+    out = s[i]
+    return int(out) if float(out).is_integer() else float(out)
+
+
+def run_improvement_timestep(records: Iterable[Mapping], key: str = "success_rate") -> int | None:
+    """:func:`improvement_timestep` of one run's history (records with unknown env steps ignored)."""
+    steps, values = curve(records, key)
+    t = improvement_timestep(steps, values)
+    return None if t is None else int(t)
+
+
+# --------------------------------------------------------------------------------------------
+# eval history (JSON lines)
+# --------------------------------------------------------------------------------------------
+
+
+def read_history(path: str | os.PathLike) -> list[dict]:
+    """All records of a history file, in file order; unparsable lines are skipped with a warning.
+
+    Raises FileNotFoundError if the file does not exist."""
+    records: list[dict] = []
+    with open(path, encoding="utf-8", errors="replace") as f:
+        lines = f.read().split("\n")
+    last = max((i for i, line in enumerate(lines) if line.strip()), default=-1)
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError as exc:
+            where = "last line (truncated?)" if i == last else f"line {i + 1}"
+            log.warning("skipping unreadable eval history line",
+                        extra={"path": str(path), "line": i + 1, "where": where, "error": str(exc)})  # fmt: skip
+            continue
+        if not isinstance(rec, dict):
+            log.warning("skipping eval history line that is not an object",
+                        extra={"path": str(path), "line": i + 1})  # fmt: skip
+            continue
+        records.append(rec)
+    return records
+
+
+def append_history(path: str | os.PathLike, record: Mapping) -> None:
+    """Append one record as a JSON line (creating the file and its folder), flushed to disk.
+
+    If the file ends in a partial line (a crash mid-write), a newline is written first so the
+    partial line stays isolated (and skipped by :func:`read_history`)."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    line = json.dumps(dict(record), sort_keys=True, allow_nan=False) + "\n"
+    with open(p, "ab+") as f:
+        if f.tell() > 0:
+            f.seek(-1, os.SEEK_END)
+            if f.read(1) != b"\n":
+                line = "\n" + line
+        f.write(line.encode())
+        f.flush()
+        os.fsync(f.fileno())
+
+
+# --------------------------------------------------------------------------------------------
+# curves across runs
+# --------------------------------------------------------------------------------------------
+
+
+def curve(records: Iterable[Mapping], key: str = "success_rate") -> tuple[np.ndarray, np.ndarray]:
+    """(env_steps, values) of one run, sorted by env_steps.
+
+    Records whose ``env_steps`` is missing or negative (unknown) or whose value is missing are
+    dropped; of several records at the same env_steps the last one (in file order) is kept."""
+    by_step: dict[int, float] = {}
+    for r in records:
+        steps, value = r.get("env_steps"), r.get(key)
+        if not isinstance(steps, (int, float)) or steps < 0 or not isinstance(value, (int, float)):
+            continue
+        by_step[int(steps)] = float(value)
+    xs = np.array(sorted(by_step), dtype=np.float64)
+    return xs, np.array([by_step[int(x)] for x in xs], dtype=np.float64)
+
+
+def common_grid(curves: Sequence[tuple[np.ndarray, np.ndarray]], points: int | None = None) -> np.ndarray:
+    """Grid for :func:`align`: the sorted union of all evaluation steps, or ``points`` evenly spaced
+    steps from the earliest to the latest evaluation."""
+    xs = [np.asarray(c[0], np.float64) for c in curves if len(c[0])]
+    if not xs:
+        return np.zeros(0)
+    if points is None:
+        return np.unique(np.concatenate(xs))
+    if points < 1:
+        raise ValueError(f"points must be >= 1, got {points}")
+    lo, hi = min(x[0] for x in xs), max(x[-1] for x in xs)
+    return np.linspace(lo, hi, points)
+
+
+def align(
+    curves: Sequence[tuple[np.ndarray, np.ndarray]], grid: np.ndarray, method: str = "hold"
+) -> np.ndarray:
+    """(runs, len(grid)) values of each curve at the grid points; NaN outside a run's evaluated span.
+
+    ``hold``: the value of the last evaluation at or before the point. ``linear``: linear
+    interpolation between the evaluations around the point. Curves must be sorted by steps (as
+    :func:`curve` returns them)."""
+    if method not in INTERPOLATIONS:
+        raise ValueError(f"method must be one of {INTERPOLATIONS}, not {method!r}")
+    g = np.asarray(grid, np.float64)
+    out = np.full((len(curves), len(g)), np.nan)
+    for k, (xs, ys) in enumerate(curves):
+        xs, ys = np.asarray(xs, np.float64), np.asarray(ys, np.float64)
+        if xs.size == 0:
+            continue
+        if np.any(np.diff(xs) < 0):
+            raise ValueError("curve steps must be sorted")
+        inside = (g >= xs[0]) & (g <= xs[-1])
+        if method == "hold":
+            idx = np.searchsorted(xs, g, side="right") - 1
+            out[k] = np.where(inside, ys[np.clip(idx, 0, len(ys) - 1)], np.nan)
+        else:
+            out[k] = np.where(inside, np.interp(g, xs, ys), np.nan)
+    return out
+
+
+def mean_std(values: np.ndarray, ddof: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean, standard deviation and count over runs (axis 0), ignoring NaN.
+
+    A point no run covers is NaN in mean and std. ``ddof=0`` (population std, the default) gives
+    std 0 for a single run; with ``ddof=1`` a single run's std is NaN."""
+    v = np.atleast_2d(np.asarray(values, np.float64))
+    ok = ~np.isnan(v)
+    n = ok.sum(axis=0)
+    total = np.where(ok, v, 0.0).sum(axis=0)
+    mean = np.divide(total, n, out=np.full(v.shape[1], np.nan), where=n > 0)
+    sq = np.where(ok, (v - mean) ** 2, 0.0).sum(axis=0)
+    std = np.sqrt(np.divide(sq, n - ddof, out=np.full(v.shape[1], np.nan), where=n - ddof > 0))
+    return mean, std, n
+
+
+__all__ = [
+    "H_MAX",
+    "INTERPOLATIONS",
+    "EpisodeResult",
+    "EvalSummary",
+    "align",
+    "append_history",
+    "common_grid",
+    "curve",
+    "episode_result",
+    "grasp_score",
+    "improvement_timestep",
+    "mean_std",
+    "read_history",
+    "run_improvement_timestep",
+    "summarize",
+]

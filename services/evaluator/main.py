@@ -1,0 +1,496 @@
+"""`mea evaluator`: evaluate the learner's broadcast weights on held-out seeds, like Equi-RSAC's eval.
+
+Why a service of its own: evaluation must not touch the training envs (pitfall P5: Equi-RSAC's eval
+env is the training env re-seeded, and its resets shift the training episodes' layout), must use
+the deterministic policy (tanh of the mean), and must compare every version on the same episodes.
+
+Each cycle (polled about 5 times a second):
+  1. Track the learner's latest ``ReplayGate``: its ``inserted_steps`` are the training env steps.
+  2. Decide whether an evaluation is due: the first version is evaluated as soon as it exists (after
+     waiting up to ``--first-gate-wait`` s for a gate, so it gets its env steps); after that, once
+     the gate's env steps have advanced by ``--every-env-steps`` since the last evaluation. With no
+     gate (steps unknown) every new version is due; if the gate goes back (a learner restarted in
+     this run dir), the next version is due at once. With ``--final-env-steps B`` (the run's budget)
+     the first version pulled once the steps reach B is evaluated off the cadence too, so a run
+     always ends with an evaluation at its budget.
+  3. Only then pull the newest version with ``WeightsClient`` (pull-if-newer; versions announced in
+     between are never downloaded) and load it into a fresh deterministic ``PolicyRuntime``. A blob
+     that does not load (tensors that do not fit, a bad config) or wants the rendered depth image
+     from an evaluator started without ``--depth-image`` is logged, counted
+     (``mea_evaluator_bad_weights_total{reason}``) and skipped; the next newer version is tried
+     when announced.
+  4. Run ``--episodes`` M episodes in this service's own env, on the same seeds every time:
+     ``seed_base + k`` for k < M (1e9 and up: no actor ever trains on them). The policy input is
+     ``services.actor.main.policy_input(obs, observation)`` (the voxel ``policy_image`` or the
+     depth image, as the weights' spec says), the rollout ``services.actor.main.run_episode``.
+     While episodes run, gates and weights announcements keep being consumed (their subscriptions
+     are bounded and BLOCK: a full one would stall this process's transport and the learner).
+  5. Summarise with ``services.evaluator.core.metrics``, publish an ``EvalReport`` on EVAL_REPORTS
+     (``env_steps`` = the gate's inserted steps when the version was pulled, -1 if no gate was
+     seen), append one line to ``RUN_DIR/eval/history.jsonl`` and update metrics and heartbeat.
+
+A shutdown during an evaluation abandons it (nothing is reported for a partial evaluation).
+History lines already in the file (a restarted evaluator) count for the improvement timestep and
+for the cadence.
+
+Metrics (``mea_evaluator_*``): evaluations_total, success_rate, mean_return, mean_length,
+grasp_score, policy_version and env_steps of the last evaluation, episode_seconds (histogram),
+bad_weights_total{reason}, improvement_env_steps (-1 while none). Heartbeat counters (the first
+four are shown by `mea run`): evaluations, success_rate, env_steps, version (-1: none yet), then
+grasp_score, mean_return, learner_env_steps, bad_weights and, once there is one,
+improvement_env_steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from proto.control import EvalReport, ReplayGate
+from proto.topics import EVAL_REPORTS, REPLAY_GATE
+from proto.weights import WeightsBlob
+from services.actor.episodes import EpisodeBuilder
+from services.actor.main import policy_input, run_episode
+from services.actor.tasks import TASKS, EnvSettings, ManipulationEnv, make_env
+from services.actor.tasks.camera import CameraSettings
+from services.common import config
+from services.common.bus.base import Bus, Subscription
+from services.common.config import ServiceConfig
+from services.common.metrics import ServiceMetrics
+from services.common.runtime import ServiceContext
+from services.common.weights import WeightsClient
+from services.evaluator.core.metrics import (
+    EvalSummary,
+    append_history,
+    episode_result,
+    read_history,
+    run_improvement_timestep,
+    summarize,
+)
+
+log = logging.getLogger(__name__)
+
+HISTORY = Path("eval") / "history.jsonl"
+"""Where the eval history lives inside a run directory."""
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluatorConfig:
+    """Evaluate broadcast weights with the deterministic policy on held-out seeds; report and record."""
+
+    task: str = "block_pull"
+    """Task: block_pull, block_pick or drawer_open."""
+    episodes: int = 10
+    """Evaluation episodes M per version (Equi-RSAC: 10)."""
+    every_env_steps: int = 250
+    """Evaluate the newest version once the learner's env steps advanced by this much since the last
+    evaluation (Equi-RSAC: 250 for Pull and Drawer, 500 for Pick). The first version is evaluated as
+    soon as it exists."""
+    seed_base: int = 1_000_000_000
+    """First held-out seed: every evaluation runs seeds seed_base .. seed_base + M - 1, so versions are
+    compared on the same episodes (actors' seeds stay below 1e9)."""
+    run_dir: Path | None = None
+    """Run directory: the eval history is appended to RUN_DIR/eval/history.jsonl (none: not recorded)."""
+    final_env_steps: int = 0
+    """The run's env-step budget: once the learner reaches it, the next version is evaluated off the
+    cadence, so the run ends with an evaluation at its budget (0: no budget)."""
+    points_per_segment: int = 256
+    """Points per segment in each observation (as the actors')."""
+    depth_image: bool = False
+    """Render the depth image, which `depth` policies (the equirsac variant) observe."""
+    max_evaluations: int = 0
+    """Stop after this many evaluations (0: until stopped)."""
+    first_gate_wait: float = 2.0
+    """Before the first evaluation, wait this long (s) for a replay gate so the version gets its env steps."""
+    torch_threads: int = 1
+    """torch intra-op threads for the policy (0: torch's default)."""
+    service: ServiceConfig = ServiceConfig()
+    """Identity, transport, metrics and logs."""
+
+    def __post_init__(self) -> None:
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {sorted(TASKS)}, not {self.task!r}")
+        if self.episodes < 1:
+            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        if min(self.every_env_steps, self.final_env_steps, self.max_evaluations, self.first_gate_wait) < 0:
+            raise ValueError(
+                "every_env_steps, final_env_steps, max_evaluations and first_gate_wait must be >= 0"
+            )
+        if self.seed_base < 0 or self.torch_threads < 0 or self.points_per_segment < 1:
+            raise ValueError("seed_base and torch_threads must be >= 0, points_per_segment >= 1")
+
+    def env_settings(self) -> EnvSettings:
+        return EnvSettings(
+            depth_image=self.depth_image, camera=CameraSettings(points_per_segment=self.points_per_segment)
+        )
+
+    @property
+    def seeds(self) -> tuple[int, ...]:
+        return tuple(self.seed_base + k for k in range(self.episodes))
+
+
+PRESETS = {"default": EvaluatorConfig()}
+
+
+class _StopRequestedError(Exception):
+    """Raised from inside a rollout when the service is asked to stop."""
+
+
+class AnnouncementTracker(WeightsClient):
+    """``WeightsClient`` that can also consume announcements without pulling (during long evaluations)."""
+
+    def absorb(self) -> None:
+        """Empty the announcement queue, remembering the newest announced version; never pulls."""
+        for d in self._sub.drain():
+            self._announced = max(self._announced, d.message.version)
+
+
+class GateTracker:
+    """The learner's latest ``ReplayGate`` (by ``created_at``); ``update`` never blocks."""
+
+    def __init__(self, sub: Subscription) -> None:
+        self.sub = sub
+        self.latest: ReplayGate | None = None
+
+    def update(self) -> ReplayGate | None:
+        for d in self.sub.drain():
+            if self.latest is None or d.message.created_at >= self.latest.created_at:
+                self.latest = d.message
+        return self.latest
+
+    @property
+    def env_steps(self) -> int:
+        """The learner's inserted env steps (-1: no gate seen)."""
+        return -1 if self.latest is None else int(self.latest.inserted_steps)
+
+
+_SECONDS = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0, 20.0, 30.0, 60.0)
+
+
+def _metrics(m: ServiceMetrics) -> dict:
+    return {
+        "evaluations": m.counter("mea_evaluator_evaluations", "Evaluations finished and reported."),
+        "success_rate": m.gauge("mea_evaluator_success_rate", "Success rate of the last evaluation."),
+        "mean_return": m.gauge("mea_evaluator_mean_return", "Mean return of the last evaluation."),
+        "mean_length": m.gauge("mea_evaluator_mean_length", "Mean episode length (steps), last evaluation."),
+        "grasp_score": m.gauge("mea_evaluator_grasp_score", "Mean grasp score s_g of the last evaluation."),
+        "version": m.gauge(
+            "mea_evaluator_policy_version", "Weights version of the last evaluation (-1: none)."
+        ),
+        "env_steps": m.gauge(
+            "mea_evaluator_env_steps",
+            "Learner env steps when the last evaluated version was pulled (-1: unknown).",
+        ),
+        "improvement": m.gauge(
+            "mea_evaluator_improvement_env_steps",
+            "Improvement timestep so far: env steps from which every evaluation had success > 0 (-1: none).",
+        ),
+        "episode_seconds": m.histogram(
+            "mea_evaluator_episode_seconds", "Wall time of one evaluation episode.", _SECONDS
+        ),
+        "bad_weights": m.counter(
+            "mea_evaluator_bad_weights",
+            "Weights versions skipped, by reason (load: do not fit; observation: no depth image here).",
+            ["reason"],
+        ),
+    }
+
+
+class Evaluator:
+    """The service's loop body, separate from the bus setup so it can be driven directly."""
+
+    def __init__(
+        self,
+        cfg: EvaluatorConfig,
+        ctx: ServiceContext,
+        gate: GateTracker,
+        weights: AnnouncementTracker,
+        env: ManipulationEnv | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.ctx = ctx
+        self.gate = gate
+        self.weights = weights
+        self.env = env or make_env(cfg.task, cfg.env_settings())  # its own env: never a training one
+        self.h_max = self.env.settings.max_steps
+        self.mx = _metrics(ctx.metrics)
+        self.mx["version"].set(-1)
+        self.mx["env_steps"].set(-1)
+        self.mx["improvement"].set(-1)
+        self.history_path = cfg.run_dir / HISTORY if cfg.run_dir is not None else None
+        self.records: list[dict] = []
+        if self.history_path is not None and self.history_path.exists():
+            self.records = read_history(self.history_path)
+            log.info(
+                "eval history found", extra={"path": str(self.history_path), "records": len(self.records)}
+            )
+        self.improvement = run_improvement_timestep(self.records)
+        if self.improvement is not None:
+            self.mx["improvement"].set(self.improvement)
+        known = [r["env_steps"] for r in self.records if isinstance(r.get("env_steps"), int)]
+        self.last_env_steps: int | None = known[-1] if known else None  # cadence survives a restart
+        self.evaluations = 0  # by this process
+        self.bad_weights = 0
+        self.last: EvalSummary | None = None
+        self.last_version = -1
+        self.last_steps = -1
+        self.started = time.monotonic()
+
+    # ---------------------------------------------------------------------------------------
+    def heartbeat_counters(self) -> dict[str, float]:
+        """For the launcher table (the first four are shown); -1 means none yet / unknown."""
+        out = {
+            "evaluations": self.evaluations,
+            "success_rate": -1.0 if self.last is None else self.last.success_rate,
+            "env_steps": self.last_steps,
+            "version": self.last_version,
+            "grasp_score": -1.0 if self.last is None else self.last.grasp_score,
+            "mean_return": -1.0 if self.last is None else self.last.mean_return,
+            "learner_env_steps": self.gate.env_steps,
+            "bad_weights": self.bad_weights,
+        }
+        if self.improvement is not None:
+            out["improvement_env_steps"] = self.improvement
+        return out
+
+    def done(self) -> bool:
+        return self.cfg.max_evaluations > 0 and self.evaluations >= self.cfg.max_evaluations
+
+    def due(self) -> bool:
+        """Is it time to pull (and evaluate) the newest version? See the module docstring."""
+        steps = self.gate.env_steps
+        if self.last_env_steps is None:  # nothing evaluated yet: as soon as a version exists
+            return steps >= 0 or time.monotonic() - self.started >= self.cfg.first_gate_wait
+        if steps < 0 or self.last_env_steps < 0:  # steps unknown: every new version
+            return True
+        if steps < self.last_env_steps:  # the learner went back (restarted): start the cadence afresh
+            return True
+        if 0 < self.cfg.final_env_steps <= steps and self.last_env_steps < self.cfg.final_env_steps:
+            return True  # the budget is reached: the run's last evaluation
+        return steps - self.last_env_steps >= self.cfg.every_env_steps
+
+    def _bad(self, blob: WeightsBlob, reason: str, error: str) -> None:
+        self.bad_weights += 1
+        self.mx["bad_weights"].labels(reason).inc()
+        log.error(
+            "weights not evaluated", extra={"version": blob.version, "reason": reason, "error": error[:300]}
+        )
+
+    def pull(self):
+        """The newest version in a fresh deterministic runtime, with its env steps; None if nothing new
+        (or it could not be loaded)."""
+        blob = self.weights.poll()
+        if blob is None:
+            return None
+        env_steps = self.gate.env_steps
+        from services.learner.core.policy import PolicyRuntime  # torch: imported once weights exist
+
+        runtime = PolicyRuntime(deterministic=True, seed=self.cfg.seed_base)
+        try:  # a fresh runtime: a failed load cannot leave a half-overwritten network behind
+            runtime.load(blob)
+        except Exception as exc:  # noqa: BLE001 - a bad blob must not take the evaluator down
+            self._bad(blob, "load", str(exc))
+            return None
+        if runtime.spec.observation == "depth" and not self.env.settings.depth_image:
+            self._bad(
+                blob, "observation", "a depth-image policy needs an evaluator started with --depth-image"
+            )
+            return None
+        return blob, runtime, env_steps
+
+    def _keep_up(self, _seconds: float = 0.0) -> None:
+        """Between env steps: consume gates and announcements (bounded BLOCK queues); stop if asked."""
+        self.gate.update()
+        self.weights.absorb()
+        if self.ctx.shutdown.is_set():
+            raise _StopRequestedError
+
+    def rollouts(self, runtime) -> list:
+        """M deterministic episodes on the fixed held-out seeds."""
+        results = []
+        observation = runtime.spec.observation
+        for seed in self.cfg.seeds:
+            t0 = time.perf_counter()
+            runtime.reset()
+            builder = EpisodeBuilder(task=self.cfg.task, seed=seed, actor_id=self.ctx.instance,
+                                     policy_version=runtime.version, policy_kind="eval", is_demo=False,
+                                     segments=self.env.segment_names)  # fmt: skip
+            b = run_episode(self.env, seed, lambda o: runtime.act(policy_input(o, observation)), builder,
+                            self._keep_up)  # fmt: skip
+            self.mx["episode_seconds"].observe(time.perf_counter() - t0)
+            results.append(episode_result(b.rewards, b.terminated, seed))
+        return results
+
+    def evaluate(self, blob: WeightsBlob, runtime, env_steps: int) -> dict | None:
+        """Evaluate one version, report it and record it; returns the history record (None if aborted)."""
+        t0, created = time.monotonic(), time.time()
+        log.info(
+            "evaluating",
+            extra={"version": blob.version, "env_steps": env_steps, "episodes": self.cfg.episodes},
+        )
+        try:
+            results = self.rollouts(runtime)
+        except _StopRequestedError:
+            log.info("evaluation abandoned at shutdown", extra={"version": blob.version})
+            return None
+        s = summarize(results, self.h_max)
+        wall = time.monotonic() - t0
+        report = EvalReport(evaluator_id=self.ctx.instance, run_id=blob.run_id, task=self.cfg.task,
+                            policy_version=blob.version, env_steps=env_steps, episodes=s.episodes,
+                            success_rate=s.success_rate, mean_return=s.mean_return, mean_length=s.mean_length,
+                            grasp_score=s.grasp_score, created_at=time.time())  # fmt: skip
+        self.ctx.bus.publish(EVAL_REPORTS, report, source=self.ctx.instance)
+        record = {
+            "version": blob.version,
+            "env_steps": env_steps,
+            "success_rate": s.success_rate,
+            "mean_return": s.mean_return,
+            "mean_length": s.mean_length,
+            "grasp_score": s.grasp_score,
+            "episodes": s.episodes,
+            "seeds": [r.seed for r in results],
+            "successes": [r.success for r in results],
+            "lengths": [r.length for r in results],
+            "wall_seconds": round(wall, 3),
+            "created_at": created,
+            "task": self.cfg.task,
+            "run_id": blob.run_id,
+            "evaluator_id": self.ctx.instance,
+        }
+        self.records.append(record)
+        if self.history_path is not None:
+            try:
+                append_history(self.history_path, record)
+            except OSError:
+                log.exception("could not append to the eval history", extra={"path": str(self.history_path)})
+        self._account(blob.version, env_steps, s)
+        log.info("evaluated", extra={"version": blob.version, "env_steps": env_steps, "success_rate": s.success_rate,
+                                     "mean_return": s.mean_return, "grasp_score": s.grasp_score,
+                                     "improvement_env_steps": self.improvement, "seconds": round(wall, 2)})  # fmt: skip
+        return record
+
+    def _account(self, version: int, env_steps: int, s: EvalSummary) -> None:
+        self.evaluations += 1
+        self.last, self.last_version, self.last_steps = s, version, env_steps
+        self.last_env_steps = env_steps
+        self.improvement = run_improvement_timestep(self.records)
+        self.ctx.policy_version = version
+        self.ctx.detail = f"v{version} at {env_steps} env steps: success {s.success_rate:.0%}"
+        self.mx["evaluations"].inc()
+        for name in ("success_rate", "mean_return", "mean_length", "grasp_score"):
+            self.mx[name].set(getattr(s, name))
+        self.mx["version"].set(version)
+        self.mx["env_steps"].set(env_steps)
+        self.mx["improvement"].set(-1 if self.improvement is None else self.improvement)
+
+    def step(self) -> bool:
+        """One cycle; True if a version was evaluated."""
+        self.gate.update()
+        if not self.due():
+            return False
+        pulled = self.pull()
+        if pulled is None:
+            return False
+        return self.evaluate(*pulled) is not None
+
+    def loop(self) -> None:
+        while not self.ctx.shutdown.is_set() and not self.done():
+            if not self.step():
+                self.ctx.shutdown.wait(0.2)
+
+
+def run(cfg: EvaluatorConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = None,
+        env: ManipulationEnv | None = None) -> int:  # fmt: skip
+    """Run the evaluator until stopped (or ``max_evaluations``); ``env`` replaces its own env (tests)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    if cfg.torch_threads > 0:
+        torch.set_num_threads(cfg.torch_threads)
+    try:
+        return _run(cfg, bus_factory, env)
+    finally:
+        torch.set_num_threads(threads)  # in-process callers (tests) get their setting back
+
+
+def _run(cfg: EvaluatorConfig, bus_factory: Callable[[ServiceConfig], Bus] | None,
+         env: ManipulationEnv | None) -> int:  # fmt: skip
+    holder: dict[str, object] = {}
+
+    def make_bus(c: ServiceConfig) -> Bus:
+        if bus_factory is not None:
+            bus = bus_factory(c)
+        else:
+            from services.common.bus.zenoh_bus import ZenohBus
+
+            bus = ZenohBus(c.zenoh)
+        # subscribe before the liveliness token is declared, as the other services do
+        holder["gate"] = GateTracker(bus.subscribe(REPLAY_GATE, capacity=64))
+        holder["weights"] = AnnouncementTracker(bus)
+        return bus
+
+    def counters() -> dict[str, float]:
+        core = holder.get("core")
+        return core.heartbeat_counters() if isinstance(core, Evaluator) else {}
+
+    with ServiceContext("evaluator", cfg.service, bus_factory=make_bus, counters=counters) as ctx:
+        gate, weights = holder["gate"], holder["weights"]
+        core = Evaluator(cfg, ctx, gate, weights, env)  # type: ignore[arg-type]
+        holder["core"] = core
+        ctx.detail = f"{cfg.task}: {cfg.episodes} episodes every {cfg.every_env_steps} env steps"
+        log.info("evaluating broadcast weights", extra={"task": cfg.task, "episodes": cfg.episodes,
+                                                       "every_env_steps": cfg.every_env_steps,
+                                                       "seed_base": cfg.seed_base,
+                                                       "history": str(core.history_path)})  # fmt: skip
+        try:
+            core.loop()
+        finally:
+            weights.close()  # type: ignore[union-attr]
+            gate.sub.close()  # type: ignore[union-attr]
+            if env is None:
+                core.env.close()
+        log.info("evaluator done", extra={"evaluations": core.evaluations, "bad_weights": core.bad_weights,
+                                          "improvement_env_steps": core.improvement})  # fmt: skip
+    return 0
+
+
+def main(argv: Sequence[str]) -> int:
+    return run(config.parse(EvaluatorConfig, PRESETS, argv, "mea evaluator", EvaluatorConfig.__doc__ or ""))
+
+
+LAUNCH_FIELDS = (
+    ("eval_every", "--every-env-steps"),
+    ("eval_episodes", "--episodes"),
+    ("env_steps", "--final-env-steps"),
+)
+"""RunConfig fields passed on when the launcher's config has them: (field, evaluator flag)."""
+
+
+def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
+    """Arguments `mea run` passes to the evaluator: the run's task and its run dir (for the history);
+    then, where the run config has them, its evaluation cadence and episodes, its env-step budget
+    (the final evaluation), and the rendered depth image for the equirsac variant."""
+    args = ["--task", run_cfg.task, "--run-dir", str(run_dir)]
+    for name, flag in LAUNCH_FIELDS:
+        value = getattr(run_cfg, name, None)
+        if value is not None:
+            args += [flag, str(value)]
+    if getattr(run_cfg, "variant", None) == "equirsac":
+        args += ["--depth-image"]
+    return args
+
+
+__all__ = [
+    "HISTORY",
+    "PRESETS",
+    "AnnouncementTracker",
+    "Evaluator",
+    "EvaluatorConfig",
+    "GateTracker",
+    "launch_args",
+    "main",
+    "run",
+]
