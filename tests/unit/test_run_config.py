@@ -1,0 +1,79 @@
+"""`mea run` settings: variants reach every service, --resume reuses the run's settings, progress/ETA."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from proto.control import EvalReport, Heartbeat
+from services.actor.main import launch_args as actor_args
+from services.augmenter.main import launch_args as augmenter_args
+from services.common import config
+from services.launcher import ChildSpec, RunConfig, StatusBoard, resumed_config
+from services.learner.main import launch_args as learner_args
+
+
+def test_variants_configure_actor_augmenter_and_learner(tmp_path):
+    mea = RunConfig(variant="mea")
+    assert "--augment.mea-on" in augmenter_args(mea, tmp_path, 0)
+    assert augmenter_args(mea, tmp_path, 0)[-1] == "demos"
+    assert augmenter_args(RunConfig(variant="mea", mea_on="all"), tmp_path, 0)[-1] == "all"
+    assert augmenter_args(RunConfig(variant="equiobs"), tmp_path, 0)[-1] == "none"
+    rsac = RunConfig(variant="equirsac")
+    assert augmenter_args(rsac, tmp_path, 0)[-2:] == ["--augment.observation", "depth"]
+    assert "--depth-image" in actor_args(rsac, tmp_path, 0) and "--depth-image" not in actor_args(
+        mea, tmp_path, 0
+    )
+    ln = learner_args(rsac, tmp_path, 0)
+    assert ln[ln.index("--observation") + 1] == "depth"
+    assert learner_args(RunConfig(task="block_pick"), tmp_path, 0)[3] == "d4"
+    assert learner_args(RunConfig(task="block_pull"), tmp_path, 0)[3] == "c4"
+    with pytest.raises(ValueError, match="mea-on"):
+        RunConfig(variant="equiobs", mea_on="all")
+    with pytest.raises(ValueError, match="variant"):
+        RunConfig(variant="nope")
+
+
+def test_resume_reuses_the_saved_settings_with_new_seeds_and_no_demos(tmp_path):
+    first = RunConfig(task="drawer_open", variant="equiobs", seed=3, demos=2, env_steps=5000, run_dir=tmp_path,
+                      listen="tcp/127.0.0.1:1111")  # fmt: skip
+    config.save(first, tmp_path / "config.json")
+    cli = RunConfig(resume=tmp_path, listen="tcp/127.0.0.1:2222", duration_seconds=9.0, task="block_pull")
+    cfg = resumed_config(cli)
+    assert (cfg.task, cfg.variant, cfg.seed, cfg.env_steps) == ("drawer_open", "equiobs", 3, 5000)
+    assert cfg.listen == "tcp/127.0.0.1:2222" and cfg.duration_seconds == 9.0  # this machine's
+    assert cfg.resumes == 1 and cfg.run_dir == tmp_path and cfg.resume == tmp_path
+    args0, args1 = actor_args(first, tmp_path, 0), actor_args(cfg, tmp_path, 0)
+    assert "--demos" in args0 and "--demos" not in args1
+    assert args0[args0.index("--seed-base") + 1] != args1[args1.index("--seed-base") + 1]
+    assert "--resume" in learner_args(cfg, tmp_path, 0) and "--resume" not in learner_args(first, tmp_path, 0)
+    config.save(cfg, tmp_path / "config.json")
+    assert resumed_config(dataclasses.replace(cli)).resumes == 2
+    with pytest.raises(SystemExit, match="config.json"):
+        resumed_config(RunConfig(resume=tmp_path / "missing"))
+
+
+def beat(service: str, instance: str, t: float, **counters: float) -> Heartbeat:
+    return Heartbeat(service=service, instance_id=instance, pid=1, state="running", started_at=0.0, created_at=t,
+                     policy_version=1, counters=counters)  # fmt: skip
+
+
+def test_progress_line_counts_and_eta():
+    specs = [
+        ChildSpec("learner", "learner-0", "x:main", ()),
+        ChildSpec("augmenter", "augmenter-0", "x:main", ()),
+    ]
+    board = StatusBoard(specs, budget=1000)
+    board.update(beat("learner", "learner-0", 1.0, env_steps=100, updates=20, version=4))
+    board.update(beat("augmenter", "augmenter-0", 1.0, transitions_out=1100))
+    assert board.progress(started=0.0, now=10.0)["eta"] is None  # one sample: no rate yet
+    board.update(beat("learner", "learner-0", 2.0, env_steps=200, updates=40, version=8))
+    p = board.progress(started=0.0, now=20.0)  # 100 steps in 10 s -> 800 left at 10/s
+    assert p["env_steps"] == 200 and p["updates"] == 40 and p["version"] == 8 and p["augmented"] == 1100
+    assert p["eta"] == pytest.approx(80.0)
+    board.add_report(EvalReport(evaluator_id="evaluator-0", run_id="r", task="block_pull", policy_version=8,
+                                env_steps=200, episodes=10, success_rate=0.3, mean_return=0.3, mean_length=40.0,
+                                grasp_score=0.1, created_at=1.0))  # fmt: skip
+    line = board.progress_line(started=0.0)
+    assert "200/1,000" in line and "30%" in line and "v8" in line
