@@ -71,7 +71,7 @@ from services.common import config
 from services.common.bus.base import Bus, Subscription
 from services.common.config import ServiceConfig
 from services.common.metrics import ServiceMetrics
-from services.common.runtime import ServiceContext
+from services.common.runtime import ServiceContext, subscribing_bus_factory
 
 log = logging.getLogger(__name__)
 
@@ -464,22 +464,14 @@ def run(cfg: AugmenterConfig, bus_factory: Callable[[ServiceConfig], Bus] | None
     """Run the augmenter until stopped (or ``max_episodes``); ``audit`` replaces the physics audit."""
     holder: dict[str, object] = {}
 
-    def make_bus(c: ServiceConfig) -> Bus:
-        if bus_factory is not None:
-            bus = bus_factory(c)
-        else:
-            from services.common.bus.zenoh_bus import ZenohBus
-
-            bus = ZenohBus(c.zenoh)
-        # Subscribe before ServiceContext declares the liveliness token: once a peer sees the
-        # token, the subscription exists and no raw episode published after that is missed.
+    def declare(bus: Bus) -> None:
         holder["sub"] = bus.subscribe(EPISODES_RAW, capacity=cfg.queue)
-        return bus
 
     def counters() -> dict[str, float]:
         core = holder.get("core")
         return core.heartbeat_counters() if isinstance(core, Augmenter) else {}
 
+    make_bus = subscribing_bus_factory(bus_factory, declare)
     with ServiceContext("augmenter", cfg.service, bus_factory=make_bus, counters=counters) as ctx:
         auditor = Auditor(cfg.audit_fraction, cfg.augment, ctx.metrics, audit, cfg.audit_queue).start()
         core = Augmenter(cfg, ctx, holder["sub"], auditor)  # type: ignore[arg-type]

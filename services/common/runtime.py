@@ -69,6 +69,21 @@ def die_with_parent() -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
+def subscribing_bus_factory(
+    factory: Callable[[ServiceConfig], Bus] | None, declare: Callable[[Bus], None]
+) -> Callable[[ServiceConfig], Bus]:
+    """A bus factory (Zenoh unless ``factory`` is given) that runs ``declare(bus)`` (the service's
+    subscriptions) before ServiceContext declares the liveliness token: once a peer sees the token,
+    the subscriptions exist, so nothing published after that is missed."""
+
+    def make(c: ServiceConfig) -> Bus:
+        bus = factory(c) if factory is not None else ZenohBus(c.zenoh)
+        declare(bus)
+        return bus
+
+    return make
+
+
 @dataclass
 class ServiceContext:
     """Everything a service shell needs around its core loop. Use as a context manager."""

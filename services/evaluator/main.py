@@ -60,7 +60,7 @@ from services.common import config
 from services.common.bus.base import Bus, Subscription
 from services.common.config import ServiceConfig
 from services.common.metrics import ServiceMetrics
-from services.common.runtime import ServiceContext
+from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.weights import WeightsClient
 from services.evaluator.core.metrics import (
     EvalSummary,
@@ -420,22 +420,15 @@ def _run(cfg: EvaluatorConfig, bus_factory: Callable[[ServiceConfig], Bus] | Non
          env: ManipulationEnv | None) -> int:  # fmt: skip
     holder: dict[str, object] = {}
 
-    def make_bus(c: ServiceConfig) -> Bus:
-        if bus_factory is not None:
-            bus = bus_factory(c)
-        else:
-            from services.common.bus.zenoh_bus import ZenohBus
-
-            bus = ZenohBus(c.zenoh)
-        # subscribe before the liveliness token is declared, as the other services do
+    def declare(bus: Bus) -> None:
         holder["gate"] = GateTracker(bus.subscribe(REPLAY_GATE, capacity=64))
         holder["weights"] = AnnouncementTracker(bus)
-        return bus
 
     def counters() -> dict[str, float]:
         core = holder.get("core")
         return core.heartbeat_counters() if isinstance(core, Evaluator) else {}
 
+    make_bus = subscribing_bus_factory(bus_factory, declare)
     with ServiceContext("evaluator", cfg.service, bus_factory=make_bus, counters=counters) as ctx:
         gate, weights = holder["gate"], holder["weights"]
         core = Evaluator(cfg, ctx, gate, weights, env)  # type: ignore[arg-type]

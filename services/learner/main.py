@@ -53,7 +53,7 @@ from proto.weights import WeightsBlob
 from services.common import config
 from services.common.bus.base import Bus, Subscription
 from services.common.config import ServiceConfig
-from services.common.runtime import ServiceContext
+from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.weights import WeightsServer
 from services.learner import checkpoint
 from services.learner.core.batch import to_batch
@@ -459,21 +459,15 @@ def _reason(message: str) -> str:
 def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = None) -> int:
     holder: dict[str, object] = {}
 
-    def make_bus(c: ServiceConfig) -> Bus:
-        if bus_factory is not None:
-            bus = bus_factory(c)
-        else:
-            from services.common.bus.zenoh_bus import ZenohBus
-
-            bus = ZenohBus(c.zenoh)
+    def declare(bus: Bus) -> None:
         holder["sub"] = bus.subscribe(EPISODES_AUGMENTED, capacity=cfg.queue)
-        return bus
 
     def counters() -> dict[str, float]:
         core = holder.get("core")
         return core.heartbeat_counters() if isinstance(core, Learner) else {}
 
     cfg.run_dir.mkdir(parents=True, exist_ok=True)
+    make_bus = subscribing_bus_factory(bus_factory, declare)
     with ServiceContext("learner", cfg.service, bus_factory=make_bus, counters=counters) as ctx:
         core = Learner(cfg, ctx, holder["sub"])  # type: ignore[arg-type]
         if cfg.resume and checkpoint.exists(core.ckpt_dir):
