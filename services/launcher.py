@@ -397,6 +397,18 @@ def _supervise(
     return failed
 
 
+def render_curves(run_dir: Path) -> None:
+    """RUN_DIR/curves.png from the run's evaluation history (what `mea plot RUN_DIR` draws)."""
+    if not (run_dir / "eval" / "history.jsonl").exists():
+        return
+    try:
+        from services.evaluator.plot import group_runs, load_run, render
+
+        render(group_runs([load_run(run_dir, "variant")]), run_dir / "curves.png", title=run_dir.name)
+    except Exception as exc:  # noqa: BLE001 - a missing plot must not fail a finished run
+        log.warning("learning curves not rendered", extra={"error": str(exc)[:300]})
+
+
 _MACHINE_FIELDS = ("listen", "metrics_port", "duration_seconds", "stop_grace_seconds", "log_format",
                    "final_eval_seconds")  # fmt: skip
 """Fields a resumed run takes from the command line rather than from the run's saved config."""
@@ -461,6 +473,7 @@ def run(cfg: RunConfig) -> int:
         if recorder is not None:
             recorder.close()
         router.close()
+        render_curves(run_dir)
         metrics.close()
     return 1 if failed else 0
 

@@ -120,5 +120,6 @@ def test_mea_run_trains_end_to_end_and_stops_at_the_budget(tmp_path):
     assert (run_dir / "learner" / "checkpoints" / "learner.pt").exists()
     history = (run_dir / "eval" / "history.jsonl").read_text().splitlines()
     assert len(history) == len(reports)
+    assert (run_dir / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     recorded = list(read_messages(run_dir / "episodes" / "raw-0.mcap"))
     assert len(recorded) == len(raw)
