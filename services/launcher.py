@@ -82,7 +82,7 @@ class RunConfig:
     demos: int = 2
     """Scripted demonstrations pre-filled before training."""
     run_dir: Path | None = None
-    """Run directory (config, checkpoints, eval history, recordings); default runs/<time>-<task>."""
+    """Run directory (config, checkpoints, eval history, recordings); default runs/<time>-<task>-<variant>."""
     listen: str = "tcp/127.0.0.1:7447"
     """Endpoint of the embedded Zenoh router; services connect to it."""
     namespace: str = "default"
