@@ -95,5 +95,11 @@ class WeightsClient:
         )
         return blob
 
+    def absorb_announcements(self) -> None:
+        """Empty the announcement queue, remembering the newest announced version, without pulling
+        (for consumers that pull rarely, e.g. only when an evaluation is due: the queue is bounded)."""
+        for d in self._sub.drain():
+            self._announced = max(self._announced, d.message.version)
+
     def close(self) -> None:
         self._sub.close()

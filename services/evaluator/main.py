@@ -139,15 +139,6 @@ class _StopRequestedError(Exception):
     """Raised from inside a rollout when the service is asked to stop."""
 
 
-class AnnouncementTracker(WeightsClient):
-    """``WeightsClient`` that can also consume announcements without pulling (during long evaluations)."""
-
-    def absorb(self) -> None:
-        """Empty the announcement queue, remembering the newest announced version; never pulls."""
-        for d in self._sub.drain():
-            self._announced = max(self._announced, d.message.version)
-
-
 class GateTracker:
     """The learner's latest ``ReplayGate`` (by ``created_at``); ``update`` never blocks."""
 
@@ -207,7 +198,7 @@ class Evaluator:
         cfg: EvaluatorConfig,
         ctx: ServiceContext,
         gate: GateTracker,
-        weights: AnnouncementTracker,
+        weights: WeightsClient,
         env: ManipulationEnv | None = None,
     ) -> None:
         self.cfg = cfg
@@ -304,7 +295,7 @@ class Evaluator:
     def _keep_up(self, _seconds: float = 0.0) -> None:
         """Between env steps: consume gates and announcements (bounded BLOCK queues); stop if asked."""
         self.gate.update()
-        self.weights.absorb()
+        self.weights.absorb_announcements()
         if self.ctx.shutdown.is_set():
             raise _StopRequestedError
 
@@ -422,7 +413,7 @@ def _run(cfg: EvaluatorConfig, bus_factory: Callable[[ServiceConfig], Bus] | Non
 
     def declare(bus: Bus) -> None:
         holder["gate"] = GateTracker(bus.subscribe(REPLAY_GATE, capacity=64))
-        holder["weights"] = AnnouncementTracker(bus)
+        holder["weights"] = WeightsClient(bus)
 
     def counters() -> dict[str, float]:
         core = holder.get("core")
@@ -479,7 +470,6 @@ def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
 __all__ = [
     "HISTORY",
     "PRESETS",
-    "AnnouncementTracker",
     "Evaluator",
     "EvaluatorConfig",
     "GateTracker",

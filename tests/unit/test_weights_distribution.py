@@ -73,3 +73,18 @@ def test_server_answers_nothing_to_a_stale_or_bad_request():
     assert bus.query(WEIGHTS_LATEST, {"min_version": "3"}) is None
     assert bus.query(WEIGHTS_LATEST, {"min_version": "not-a-number"}) is None
     assert bus.query(WEIGHTS_LATEST, {"min_version": "2"}).message.version == 2
+
+
+def test_absorbing_announcements_never_pulls_but_the_next_poll_gets_the_newest():
+    hub = Hub()
+    server = WeightsServer(InProcBus(hub), "learner-0")
+    bus = CountingBus(hub)
+    client = WeightsClient(bus)
+    assert client.poll() is None and bus.queries == 1
+    for v in (1, 2, 3):
+        server.publish(_blob(v))
+    client.absorb_announcements()
+    assert bus.queries == 1 and client.version == -1  # drained, nothing pulled
+    got = client.poll()
+    assert got is not None and got.version == 3 and bus.queries == 2
+    assert client.poll() is None and bus.queries == 2
