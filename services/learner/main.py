@@ -248,7 +248,6 @@ class Learner:
         self.server = WeightsServer(ctx.bus, ctx.instance)
         self.run_id = cfg.run_id or default_run_id(cfg.run_dir)
         self.version = -1
-        self.env_steps = 0
         self.last: dict[str, float] = {}
         self.counts = {"episodes_in": 0, "rejected": 0}
         self.wait_seconds = 0.0
@@ -257,7 +256,11 @@ class Learner:
         self._ingest_thread: threading.Thread | None = None
         self.ckpt_dir = cfg.run_dir / "checkpoints"
         self._last_ckpt = time.monotonic()
-        self.resumed_from: int | None = None
+
+    @property
+    def env_steps(self) -> int:
+        """Raw env steps inserted: the limiter's inserts (augmented copies are not counted)."""
+        return self.limiter.inserts
 
     # ---------------------------------------------------------------- replay side
     def ingest(self, ep: Episode) -> None:
@@ -267,7 +270,6 @@ class Learner:
                 self.replay.insert(ep)
                 if ep.augmentation is None:
                     self.limiter.inserted(ep.num_steps)
-                    self.env_steps += ep.num_steps
         except ValueError as exc:
             reason = _reason(str(exc))
             self.counts["rejected"] += 1
@@ -421,9 +423,7 @@ class Learner:
         self.replay.load_state_dict(replay)
         self.limiter.load_state_dict(meta["limiter"])
         self.version, self.run_id = int(meta["version"]), str(meta["run_id"])
-        self.env_steps = int(meta["env_steps"])
         self.last = dict(meta.get("last", {}))
-        self.resumed_from = self.version
         log.info("resumed", extra={"version": self.version, "updates": self.sac.updates,
                                    "replay_transitions": len(self.replay), "run_id": self.run_id})  # fmt: skip
 
