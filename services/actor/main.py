@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-from proto.control import ReplayGate
 from proto.topics import EPISODES_RAW, REPLAY_GATE
 from services.actor.episodes import EpisodeBuilder
 from services.actor.tasks import EXPERT_STYLES, TASKS, EnvSettings, ManipulationEnv, make_env
@@ -41,6 +40,7 @@ from services.augmenter.core.projection import DEFAULT_SPEC, quantized_observati
 from services.common import config
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
+from services.common.replay_gate import GateTracker
 from services.common.runtime import ServiceContext
 from services.common.weights import WeightsClient
 
@@ -127,30 +127,20 @@ def policy_input(obs: Observation, observation: str) -> np.ndarray:
 
 
 class GateFollower:
-    """Tracks the learner's latest ``ReplayGate`` and waits while its allowance is used up."""
+    """Waits while the learner's latest ``ReplayGate`` says its allowance is used up."""
 
     def __init__(self, bus: Bus, stale_after: float, first_wait: float = 1.5) -> None:
-        self.sub = bus.subscribe(REPLAY_GATE, capacity=16)
+        self.tracker = GateTracker(bus.subscribe(REPLAY_GATE, capacity=16))
         self.stale_after, self.first_wait = stale_after, first_wait
         self._first = True
-        self.latest: ReplayGate | None = None
-        self.seen_at = 0.0
-
-    def _drain(self) -> None:
-        for d in self.sub.drain():
-            if self.latest is None or d.message.created_at >= self.latest.created_at:
-                self.latest, self.seen_at = d.message, time.monotonic()
 
     def blocked(self) -> bool:
-        if self._first:  # give a running learner's gate (every ~0.5 s) a chance to arrive first
-            self._first = False
-            d = self.sub.recv(timeout=self.first_wait)
-            if d is not None:
-                self.latest, self.seen_at = d.message, time.monotonic()
-        self._drain()
-        if self.latest is None or time.monotonic() - self.seen_at > self.stale_after:
+        # before the first episode, give a running learner's gate (every ~0.5 s) a chance to arrive
+        gate = self.tracker.update(self.first_wait if self._first else 0.0)
+        self._first = False
+        if gate is None or time.monotonic() - self.tracker.seen_at > self.stale_after:
             return False
-        return self.latest.inserted_steps >= self.latest.allowed_steps
+        return gate.inserted_steps >= gate.allowed_steps
 
     def wait(self, stop) -> float:
         """Wait until the gate opens (or goes stale, or ``stop`` is set); returns seconds waited."""
@@ -160,7 +150,7 @@ class GateFollower:
         return time.monotonic() - t0
 
     def close(self) -> None:
-        self.sub.close()
+        self.tracker.sub.close()
 
 
 def run_episode(

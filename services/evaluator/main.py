@@ -49,7 +49,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from proto.control import EvalReport, ReplayGate
+from proto.control import EvalReport
 from proto.topics import EVAL_REPORTS, REPLAY_GATE
 from proto.weights import WeightsBlob
 from services.actor.episodes import EpisodeBuilder
@@ -57,9 +57,10 @@ from services.actor.main import policy_input, run_episode
 from services.actor.tasks import TASKS, EnvSettings, ManipulationEnv, make_env
 from services.actor.tasks.camera import CameraSettings
 from services.common import config
-from services.common.bus.base import Bus, Subscription
+from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
 from services.common.metrics import ServiceMetrics
+from services.common.replay_gate import GateTracker
 from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.weights import WeightsClient
 from services.evaluator.core.metrics import (
@@ -137,25 +138,6 @@ PRESETS = {"default": EvaluatorConfig()}
 
 class _StopRequestedError(Exception):
     """Raised from inside a rollout when the service is asked to stop."""
-
-
-class GateTracker:
-    """The learner's latest ``ReplayGate`` (by ``created_at``); ``update`` never blocks."""
-
-    def __init__(self, sub: Subscription) -> None:
-        self.sub = sub
-        self.latest: ReplayGate | None = None
-
-    def update(self) -> ReplayGate | None:
-        for d in self.sub.drain():
-            if self.latest is None or d.message.created_at >= self.latest.created_at:
-                self.latest = d.message
-        return self.latest
-
-    @property
-    def env_steps(self) -> int:
-        """The learner's inserted env steps (-1: no gate seen)."""
-        return -1 if self.latest is None else int(self.latest.inserted_steps)
 
 
 _SECONDS = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0, 20.0, 30.0, 60.0)
@@ -472,7 +454,6 @@ __all__ = [
     "PRESETS",
     "Evaluator",
     "EvaluatorConfig",
-    "GateTracker",
     "launch_args",
     "main",
     "run",

@@ -180,8 +180,9 @@ def _cadence_evaluator(tmp_path, **kw):
     from types import SimpleNamespace
 
     from services.common.metrics import ServiceMetrics
+    from services.common.replay_gate import GateTracker
     from services.common.runtime import Shutdown
-    from services.evaluator.main import Evaluator, GateTracker
+    from services.evaluator.main import Evaluator
 
     cfg = EvaluatorConfig(run_dir=tmp_path, first_gate_wait=60.0, **kw)
     ctx = SimpleNamespace(metrics=ServiceMetrics("evaluator", "evaluator-u"), instance="evaluator-u",

@@ -1,0 +1,39 @@
+"""The learner's latest ``ReplayGate`` as seen by a consumer (actors follow it, the evaluator reads
+the learner's env steps from it)."""
+
+from __future__ import annotations
+
+import time
+
+from proto.control import ReplayGate
+from services.common.bus.base import Subscription
+
+
+class GateTracker:
+    """Keeps the newest ``ReplayGate`` (by ``created_at``) from a subscription; ``update`` drains the
+    bounded queue without blocking (unless asked to wait for a first gate)."""
+
+    def __init__(self, sub: Subscription) -> None:
+        self.sub = sub
+        self.latest: ReplayGate | None = None
+        self.seen_at = 0.0
+        """``time.monotonic()`` when the latest gate was taken (0: none yet)."""
+
+    def _take(self, gate: ReplayGate) -> None:
+        if self.latest is None or gate.created_at >= self.latest.created_at:
+            self.latest, self.seen_at = gate, time.monotonic()
+
+    def update(self, first_wait: float = 0.0) -> ReplayGate | None:
+        """Take every queued gate; with none known yet, wait up to ``first_wait`` s for one."""
+        if self.latest is None and first_wait > 0:
+            d = self.sub.recv(timeout=first_wait)
+            if d is not None:
+                self._take(d.message)
+        for d in self.sub.drain():
+            self._take(d.message)
+        return self.latest
+
+    @property
+    def env_steps(self) -> int:
+        """The learner's inserted env steps (-1: no gate seen)."""
+        return -1 if self.latest is None else int(self.latest.inserted_steps)
