@@ -36,7 +36,7 @@ from services.actor.tasks import EXPERT_STYLES, TASKS, EnvSettings, Manipulation
 from services.actor.tasks.camera import CameraSettings
 from services.actor.tasks.env import Observation
 from services.augmenter.core.depth_image import policy_images as depth_policy_images
-from services.augmenter.core.projection import DEFAULT_SPEC, quantized_observations, segments_to_points
+from services.augmenter.core.projection import segment_policy_images
 from services.common import config
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
@@ -104,8 +104,7 @@ def expert_style(cfg_style: str, k: int) -> str:
 def policy_image(obs: Observation) -> np.ndarray:
     """The learned policy's input for one observation: voxel projection + jaw, uint8 (2, 84, 84),
     bit-identical to what the augmenter attaches to stored episodes."""
-    points, valid = segments_to_points(obs.points[None], obs.point_counts[None])
-    return quantized_observations(points, np.array([obs.jaw], np.float32), DEFAULT_SPEC, valid)[0]
+    return segment_policy_images(obs.points[None], obs.point_counts[None], np.array([obs.jaw], np.float32))[0]
 
 
 def policy_input(obs: Observation, observation: str) -> np.ndarray:

@@ -54,13 +54,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from services.augmenter.core.projection import DEPTH_CHANNEL, JAW_CHANNEL, jaw_codes
+
 __all__ = ["DepthImageSpec", "DEFAULT_DEPTH_SPEC", "depth_codes", "dequantize_depth", "policy_images",
            "rotate_images", "rotation_matrix"]  # fmt: skip
 
-DEPTH_CHANNEL = 0
-"""Index of the depth codes in a policy stack (T, 2, N, N) (same as the voxel path)."""
-JAW_CHANNEL = 1
-"""Index of the tiled jaw code in a policy stack (T, 2, N, N) (same as the voxel path)."""
 _CV_MAX_CHANNELS = 512
 """OpenCV's channel limit (CV_CN_MAX): frames are warped in groups of at most this many."""
 
@@ -132,7 +130,7 @@ def policy_images(
         raise ValueError(f"jaw must have shape {d.shape[:1]}, got {jaw32.shape}")
     out = np.empty((d.shape[0], 2, spec.size, spec.size), np.uint8)
     out[:, DEPTH_CHANNEL] = depth_codes(d, spec)
-    out[:, JAW_CHANNEL] = np.rint(np.clip(jaw32.astype(np.float64), 0.0, 1.0) * 255.0)[:, None, None]
+    out[:, JAW_CHANNEL] = jaw_codes(jaw32)[:, None, None]
     return out
 
 

@@ -39,11 +39,7 @@ from services.augmenter.core.depth_image import (
 )
 from services.augmenter.core.isometric import compose_with_mea, isometric_copy
 from services.augmenter.core.mea import MeaSettings, augment
-from services.augmenter.core.projection import (
-    ProjectionSpec,
-    quantized_observations,
-    segments_to_points,
-)
+from services.augmenter.core.projection import ProjectionSpec, segment_policy_images
 
 MEA_ON = ("demos", "successes", "all", "none")
 OBSERVATIONS = ("voxel", "depth")
@@ -113,8 +109,7 @@ def episode_seed(base: int, episode_id: str) -> int:
 def with_images(ep: Episode, spec: ProjectionSpec) -> Episode:
     """Attach the policy images: voxel projection of all segments + the jaw channel, uint8."""
     # == quantize(observation_channels(project_batch(points, spec, valid), ep.jaw, spec), spec)
-    points, valid = segments_to_points(ep.points, ep.point_counts)
-    return dataclasses.replace(ep, images=quantized_observations(points, ep.jaw, spec, valid))
+    return dataclasses.replace(ep, images=segment_policy_images(ep.points, ep.point_counts, ep.jaw, spec))
 
 
 def depth_policy_images(ep: Episode, spec: DepthImageSpec = DEFAULT_DEPTH_SPEC) -> np.ndarray:

@@ -57,6 +57,7 @@ __all__ = [
     "ProjectionSpec",
     "dequantize",
     "dequantize_depth",
+    "jaw_codes",
     "depth_indices",
     "observation_channels",
     "project",
@@ -64,6 +65,7 @@ __all__ = [
     "quantize",
     "quantize_depth",
     "quantized_observations",
+    "segment_policy_images",
     "segments_to_points",
 ]
 
@@ -344,6 +346,12 @@ def _depth_codes(spec: ProjectionSpec) -> np.ndarray:
     return codes
 
 
+def jaw_codes(jaw: np.ndarray) -> np.ndarray:
+    """Jaw openings -> the jaw channel's codes ``round(clip(jaw, 0, 1) * 255)``, the jaw taken as float32
+    first (as observations store it); shared by every kind of policy image."""
+    return np.rint(np.clip(np.asarray(jaw, dtype=np.float32).astype(np.float64), 0.0, 1.0) * 255.0)
+
+
 def quantized_observations(
     points: np.ndarray, jaw: np.ndarray, spec: ProjectionSpec = DEFAULT_SPEC, valid: np.ndarray | None = None
 ) -> np.ndarray:
@@ -359,6 +367,15 @@ def quantized_observations(
         raise ValueError(f"jaw must have shape {kmin.shape[:1]}, got {jaw32.shape}")
     out = np.empty((kmin.shape[0], N_CHANNELS, spec.size, spec.size), np.uint8)
     np.take(_depth_codes(spec), kmin, out=out[:, DEPTH_CHANNEL])
-    jaw_codes = np.rint(np.clip(jaw32.astype(np.float64), 0.0, 1.0) * 255.0)
-    out[:, JAW_CHANNEL] = jaw_codes[:, None, None]
+    out[:, JAW_CHANNEL] = jaw_codes(jaw32)[:, None, None]
     return out
+
+
+def segment_policy_images(
+    points: np.ndarray, point_counts: np.ndarray, jaw: np.ndarray, spec: ProjectionSpec = DEFAULT_SPEC
+) -> np.ndarray:
+    """Policy images of segmented observations: (T, S, P, 3) points with (T, S) counts and (T,) jaw
+    -> (T, 2, N, N) uint8. The one path from observations to images, for stored episodes (augmenter)
+    and live observations (actors, evaluator) alike, so both are bit-identical."""
+    flat, valid = segments_to_points(points, point_counts)
+    return quantized_observations(flat, jaw, spec, valid)
