@@ -88,10 +88,12 @@ def bench_raw(cfg: SystemBenchConfig) -> dict[str, Any]:
     return {"actors": cfg.actors, "env steps/s (total)": sum(rates), "per process": sum(rates) / len(rates)}
 
 
-def _connect(port: int, proc: subprocess.Popen):
+def connect_to_run(port: int, proc: subprocess.Popen, timeout: float = 60.0):
+    """A Zenoh client of the router inside a `mea run` subprocess, retried until it listens
+    (bounded; fails at once if the launcher exits)."""
     from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + timeout
     while True:
         try:
             return ZenohBus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
@@ -146,7 +148,7 @@ def bench_stack(cfg: SystemBenchConfig) -> tuple[dict[str, Any], list[dict[str, 
     bus = None
     col = Collector(time.monotonic() + cfg.warmup_seconds)
     try:
-        bus = _connect(port, proc)
+        bus = connect_to_run(port, proc)
         beats = bus.subscribe(STATUS, capacity=8192)
         announces = bus.subscribe(WEIGHTS_ANNOUNCE, capacity=8192)
         _log(f"full stack: warm-up {cfg.warmup_seconds:.0f} s, then {cfg.seconds:.0f} s measured ...")

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW, EVAL_REPORTS, STATUS, WEIGHTS_ANNOUNCE
-from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
+from services.bench.system import connect_to_run
 from services.common.mcap_io import read_messages
 
 pytestmark = pytest.mark.e2e
@@ -55,12 +55,7 @@ def test_mea_run_trains_end_to_end_and_stops_at_the_budget(tmp_path):
     pids: set[int] = set()
     try:
         deadline = time.monotonic() + 60
-        while bus is None:
-            try:
-                bus = ZenohBus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
-            except Exception:  # noqa: BLE001 - the launcher's router is not listening yet
-                assert time.monotonic() < deadline and proc.poll() is None, "router never came up"
-                time.sleep(0.5)
+        bus = connect_to_run(port, proc)
         subs = {
             "raw": bus.subscribe(EPISODES_RAW, capacity=1024),
             "aug": bus.subscribe(EPISODES_AUGMENTED, capacity=4096),
@@ -70,12 +65,13 @@ def test_mea_run_trains_end_to_end_and_stops_at_the_budget(tmp_path):
         }
         while proc.poll() is None:
             assert time.monotonic() < deadline + 240, "run did not finish"
-            time.sleep(0.2)
             raw += [d.message for d in subs["raw"].drain()]
             augmented += [d.message for d in subs["aug"].drain()]
             versions += [d.message.version for d in subs["ann"].drain()]
             reports += [d.message for d in subs["eval"].drain()]
-            for d in subs["status"].drain():
+            for d in [subs["status"].recv(timeout=0.2), *subs["status"].drain()]:  # heartbeats pace the loop
+                if d is None:
+                    continue
                 hb = d.message
                 pids.add(hb.pid)
                 if hb.service in ("actor", "evaluator"):
@@ -111,8 +107,10 @@ def test_mea_run_trains_end_to_end_and_stops_at_the_budget(tmp_path):
         assert seen and max(seen) > min(seen), (service, policy_seen[service])
     assert reports and all(0.0 <= r.success_rate <= 1.0 for r in reports)
     assert max(r.env_steps for r in reports) >= BUDGET  # the final evaluation at the budget
-    # nothing left behind
-    time.sleep(1.0)
+    # nothing left behind (the launcher has exited; its children are reaped within a moment)
+    deadline = time.monotonic() + 5.0
+    while [p for p in pids if _alive(p)] and time.monotonic() < deadline:
+        time.sleep(0.05)
     assert not [p for p in pids if _alive(p)], "service processes outlived the launcher"
     # the run directory
     cfg = json.loads((run_dir / "config.json").read_text())

@@ -89,8 +89,7 @@ def test_learned_actor_acts_with_broadcast_weights_and_waits_for_the_replay_gate
         target=lambda: result.setdefault("rc", run(cfg, bus_factory=lambda _c: InProcBus(hub)))
     )
     actor.start()
-    time.sleep(3.0)
-    assert episodes.recv(timeout=0.0) is None, "published while the gate was closed"
+    assert episodes.recv(timeout=3.0) is None, "published while the gate was closed"
     closed.set()
     actor.join(timeout=120)
     assert result.get("rc") == 0

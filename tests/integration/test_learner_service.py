@@ -81,7 +81,13 @@ def test_learner_respects_the_ratio_publishes_versions_and_survives_bad_input(tm
             EPISODES_AUGMENTED, learner_episode(100 + k, copy_of=raw.episode_id), source="augmenter-0"
         )
     wait_for(lambda: (g := latest_gate()) is not None and g.updates >= 10, 60, "10 updates")
-    time.sleep(1.0)  # the limiter must hold it there: no over-training on the same 30 steps
+    # the limiter must hold it there for good: no gate in the next second shows over-training
+    hold_until = time.monotonic() + 1.0
+    while time.monotonic() < hold_until:
+        d = gates.recv(timeout=max(0.0, hold_until - time.monotonic()))
+        if d is not None:
+            seen_gates.append(d.message)
+            assert d.message.updates <= 10, d.message
     g = latest_gate()
     assert g.updates == 10 and g.inserted_steps == 30 and g.replay_transitions == 60
     assert g.allowed_steps > g.inserted_steps  # producers may add more (max_diff = 0.5*20 + 5)
