@@ -3,9 +3,10 @@
 Three measurements on this machine (CPU, torch's default threads unless ``--threads``):
 
 1. **Updates**: for each preset (default ``paper`` C4 and D4, ``cpu-small`` C4, the non-equivariant
-   ``paper`` twin), a replay filled with random 50-step episodes (uint8 policy images, as the
-   augmenter sends them) and the real update: sample a batch of whole episodes, build tensors,
-   critic + actor + alpha steps, soft target update. One warm-up update, then ``--updates`` timed
+   ``paper`` twin), a replay of random episodes (uint8 policy images, as the augmenter sends them; a
+   quarter are 16-step pinned demonstrations, the rest 50-step online episodes) and the preset's real
+   update: sample a batch of whole episodes as the preset does (demonstration share, trimming), build
+   tensors, critic + actor + alpha steps, soft target update. One warm-up update, then ``--updates`` timed
    ones; the median is the figure. The ``paper`` C4 row is the one compared with the public code's
    11.1 s per update (batch 32 x 50 steps, equivariant, 2 threads).
 2. **Replay memory** for 1e5 transitions (reserved bytes, computed for the real layout, and checked
@@ -39,7 +40,7 @@ from services.learner.core.batch import to_batch
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.learner.core.replay import SequenceReplay, public_reference_bytes
-from services.learner.core.sac import RecurrentSAC, SacSettings
+from services.learner.core.sac import RecurrentSAC
 from services.learner.main import PRESETS as LEARNER_PRESETS
 
 CONSUMER = "bench-consumer"
@@ -72,8 +73,8 @@ def _log(msg: str) -> None:
     print(f"[bench learner] {msg}", file=sys.stderr, flush=True)
 
 
-def random_episode(rng: np.random.Generator, k: int, T: int = 50) -> Episode:
-    """A raw 50-step episode with uint8 policy images (depth codes + a constant jaw code)."""
+def random_episode(rng: np.random.Generator, k: int, T: int = 50, is_demo: bool = False) -> Episode:
+    """A raw T-step episode with uint8 policy images (depth codes + a constant jaw code)."""
     images = rng.integers(0, 256, (T + 1, 2, 84, 84), dtype=np.uint8)
     images[:, 1] = rng.integers(0, 256, (T + 1, 1, 1), dtype=np.uint8)
     S, P = 3, 4
@@ -81,7 +82,7 @@ def random_episode(rng: np.random.Generator, k: int, T: int = 50) -> Episode:
     ends[-1] = True
     return Episode(
         episode_id=f"bench-{k}", task="block_pull", seed=k, actor_id="bench", policy_version=-1,
-        policy_kind="random", is_demo=False, created_at=1.0, segments=["gripper", "object_0", "object_1"],
+        policy_kind="expert" if is_demo else "random", is_demo=is_demo, created_at=1.0, segments=["gripper", "object_0", "object_1"],
         points=np.zeros((T + 1, S, P, 3), np.float32), point_counts=np.full((T + 1, S), P, np.int32),
         jaw=np.ones(T + 1, np.float32), actions=rng.uniform(-1, 1, (T, 5)).astype(np.float32),
         rewards=np.zeros(T, np.float32), terminated=np.zeros(T, bool), truncated=ends,
@@ -98,20 +99,34 @@ def variant_net(variant: str) -> tuple[str, NetConfig, int]:
     return preset, dataclasses.replace(lc.net, group=group or lc.net.group), lc.batch_size
 
 
-def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
-    rng = np.random.default_rng(cfg.seed)
+DEMO_STEPS = 16
+"""Length of the demonstration-like episodes in the benchmark replay (the experts take 14-25 steps)."""
+
+
+def bench_replay_contents(cfg: LearnerBenchConfig, rng: np.random.Generator) -> SequenceReplay:
+    """A quarter of the episodes demonstration-like (16 steps, pinned), the rest 50-step online ones,
+    so presets that sample demonstrations or trim batches are timed on the batches they really see."""
     replay = SequenceReplay(cfg.episodes * 50, seq_len=50, seed=cfg.seed)
     for k in range(cfg.episodes):
-        replay.insert(random_episode(rng, k))
+        demo = k < cfg.episodes // 4
+        replay.insert(random_episode(rng, k, DEMO_STEPS if demo else 50, is_demo=demo))
+    return replay
+
+
+def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
+    rng = np.random.default_rng(cfg.seed)
+    replay = bench_replay_contents(cfg, rng)
     rows = []
     for variant in cfg.variants:
         preset, net, batch_size = variant_net(variant)
+        lc = LEARNER_PRESETS[preset]
         torch.manual_seed(cfg.seed)
-        sac = RecurrentSAC(build_actor(net), build_critic(net), SacSettings())
+        sac = RecurrentSAC(build_actor(net), build_critic(net), lc.sac)
         sample_s, update_s = [], []
         for i in range(cfg.updates + 1):
             t0 = time.perf_counter()
-            batch = to_batch(replay.sample(batch_size, rng))
+            sample = replay.sample(batch_size, rng, demo_fraction=lc.demo_fraction, trim=lc.trim_batches)
+            batch = to_batch(sample)
             t1 = time.perf_counter()
             sac.update(batch)
             t2 = time.perf_counter()
@@ -121,7 +136,8 @@ def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
         per_update = statistics.median(update_s)
         _log(f"{variant}: {per_update:.3f} s/update")
         rows.append({
-            "variant": variant, "group": net.group, "batch (episodes x 50)": batch_size,
+            "variant": variant, "group": net.group, "batch (episodes)": batch_size,
+            "demo share": lc.demo_fraction, "trimmed": lc.trim_batches, "shared encoder": lc.sac.share_encoder,
             "params (actor + critic)": sum(p.numel() for m in (sac.actor, sac.critic) for p in m.parameters()),
             "s/update (median)": per_update, "s/update (min)": min(update_s), "updates/s": 1.0 / per_update,
             "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),

@@ -85,6 +85,14 @@ class LearnerConfig:
     """Replay capacity in transitions (raw and augmented copies alike; demonstrations are never evicted)."""
     batch_size: int = 32
     """Whole episodes per update."""
+    demo_fraction: float = 0.0
+    """Share of every batch drawn from the demonstration set (demos and all their augmented copies),
+    the rest from the other episodes (RLPD / SERL symmetric sampling); 0 samples uniformly (the paper)."""
+    successes_as_demos: bool = False
+    """Episodes with a positive reward (online successes and their copies) join the demonstration set
+    for demo_fraction and the BC term: self-imitation of what already worked (off: demos only)."""
+    trim_batches: bool = True
+    """Pad each batch to its longest episode instead of seq_len (same losses, less work)."""
     seq_len: int = 50
     """Episodes are padded to this many steps (the task's time limit)."""
     samples_per_insert: float = 1.0
@@ -134,19 +142,26 @@ class LearnerConfig:
                 raise ValueError(f"{name} must be >= 1")
         if self.replay_capacity < self.seq_len:
             raise ValueError("replay_capacity must hold at least one episode (>= seq_len)")
+        if not 0.0 <= self.demo_fraction <= 1.0:
+            raise ValueError(f"demo_fraction must be in [0, 1], got {self.demo_fraction}")
         if self.samples_per_insert <= 0 or self.min_steps < 0 or self.error_buffer < 0:
             raise ValueError("samples_per_insert must be > 0, min_steps and error_buffer >= 0")
 
 
 PRESETS = {
     "paper": LearnerConfig(),
-    # cpu-small: the paper's recipe at a size two CPU cores train at a useful pace. Cuts: halved
-    # network widths (NetConfig cpu-small), 8 episodes per batch instead of 32, and 0.25 updates per
-    # env step instead of 1 (the replay gate then lets actors run 4 steps per update); replay 50k.
+    # cpu-small: the recipe that learns on two CPU cores within the budget (README, "Presets"). Cuts:
+    # halved network widths, 8 episodes per batch instead of 32, 0.5 updates per env step instead of
+    # 1 (the replay gate lets actors run 2 steps per update); replay 50k. Additions, each a field:
+    # half of every batch from the demonstration set (demos, their copies, online successes), a BC
+    # term, alpha from 0.01, LayerNorm in the Q MLPs, one encoder shared by actor and critic.
     "cpu-small": LearnerConfig(
-        net=NET_PRESETS["cpu-small"],
+        net=dataclasses.replace(NET_PRESETS["cpu-small"], critic_layer_norm=True),
+        sac=SacSettings(init_alpha=0.01, bc_weight=0.5, share_encoder=True),
+        demo_fraction=0.5,
+        successes_as_demos=True,
         batch_size=8,
-        samples_per_insert=0.25,
+        samples_per_insert=0.5,
         replay_capacity=50_000,
         min_steps=100,
         error_buffer=100.0,
@@ -186,8 +201,15 @@ def _metrics(m) -> dict:
             "Wall time of one update (sample, transfer, losses, optimiser steps).",
             (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0),
         ),
-        "loss": m.gauge("mea_learner_loss", "Latest loss by name (critic, actor, alpha).", ["loss"]),
+        "loss": m.gauge("mea_learner_loss", "Latest loss by name (critic, actor, alpha, bc).", ["loss"]),
         "alpha": m.gauge("mea_learner_alpha", "Entropy temperature."),
+        "batch_demo_share": m.gauge(
+            "mea_learner_batch_demo_share",
+            "Share of the latest batch's episodes drawn from the demonstration set.",
+        ),
+        "batch_reward_transitions": m.gauge(
+            "mea_learner_batch_reward_transitions", "Transitions with reward > 0 in the latest batch."
+        ),
         "entropy": m.gauge("mea_learner_policy_entropy", "Latest policy entropy estimate (-mean log pi)."),
         "q": m.gauge("mea_learner_q", "Latest mean Q values (q1, q2, target).", ["stat"]),
         "updates_per_second": m.gauge("mea_learner_updates_per_second", "Updates per second (recent)."),
@@ -333,7 +355,17 @@ class Learner:
         t0 = time.perf_counter()
         with self.lock:
             ready = self.replay.num_episodes > 0 and self.limiter.can_sample()
-            sample = self.replay.sample(self.cfg.batch_size, self.rng) if ready else None
+            sample = (
+                self.replay.sample(
+                    self.cfg.batch_size,
+                    self.rng,
+                    demo_fraction=self.cfg.demo_fraction,
+                    successes_as_demos=self.cfg.successes_as_demos,
+                    trim=self.cfg.trim_batches,
+                )
+                if ready
+                else None
+            )
         if sample is None:
             self.ctx.shutdown.wait(0.02)
             waited = time.perf_counter() - t0
@@ -341,6 +373,8 @@ class Learner:
             self.mx["wait"].inc(waited)
             return False
         info = self.sac.update(to_batch(sample))
+        info["batch_demo_share"] = float(sample.from_demo_set.mean())
+        info["batch_reward_transitions"] = float((sample.rewards > 0).sum())
         with self.lock:
             self.limiter.sampled()
         dt = time.perf_counter() - t0
@@ -354,9 +388,12 @@ class Learner:
         mx = self.mx
         mx["updates"].inc()
         mx["update_seconds"].observe(dt)
-        for name in ("critic", "actor", "alpha"):
-            mx["loss"].labels(name).set(info[f"{name}_loss"])
+        for name in ("critic", "actor", "alpha", "bc"):
+            if f"{name}_loss" in info:
+                mx["loss"].labels(name).set(info[f"{name}_loss"])
         mx["alpha"].set(info["alpha"])
+        mx["batch_demo_share"].set(info["batch_demo_share"])
+        mx["batch_reward_transitions"].set(info["batch_reward_transitions"])
         mx["entropy"].set(info["entropy"])
         for stat, key in (("q1", "q1"), ("q2", "q2"), ("target", "target_q")):
             mx["q"].labels(stat).set(info[key])

@@ -19,4 +19,6 @@ def to_batch(sample: SequenceBatch, device: torch.device | str = "cpu") -> Batch
         rewards=torch.from_numpy(sample.rewards).to(device),
         terminated=torch.from_numpy(sample.terminated).to(device, torch.float32),
         mask=torch.from_numpy(sample.mask).to(device, torch.float32),
+        demo=torch.from_numpy(sample.from_demo_set).to(device, torch.float32),
+        obs_mask=torch.from_numpy(sample.obs_mask).to(device),
     )

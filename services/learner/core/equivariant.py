@@ -12,6 +12,7 @@ so that f(g x) = g f(x) for every g, exactly up to float rounding:
   permuted by g^-1 h and its space transformed by g.
 * `GroupLinear`: the 1x1 case of `GroupConv2d` on flat vectors (..., F |G|): the equivariant linear /
   MLP layer (block-circulant for C4).
+* `GroupLayerNorm`: LayerNorm over all channels with a per-field affine (RLPD's critic LayerNorm).
 * `ActionLift`: an action (trivial jaw, dz; irrep (dx, dy); sign dtheta) -> regular fields,
   lifted(a)_g = W (g^-1 a) + b.
 * `group_pool` / `InvariantHead`: regular -> trivial (mean over the group axis, then any linear map).
@@ -40,6 +41,7 @@ __all__ = [
     "ActionLift",
     "EquivariantLSTM",
     "GroupConv2d",
+    "GroupLayerNorm",
     "GroupLinear",
     "GroupPool",
     "InvariantHead",
@@ -182,6 +184,25 @@ class GroupLinear(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         return F.linear(x, self.expanded_weight(), field_bias(self.bias, self.group))
+
+
+class GroupLayerNorm(nn.Module):
+    """LayerNorm over all channels of regular fields (..., F |G|), with one scale and bias per field.
+
+    Mean and variance over every channel are invariant under the channel permutation by which g acts,
+    so normalising commutes with it; a per-channel affine would not (the same reason as per-field
+    biases), hence the scale and bias are tied over each field's |G| channels."""
+
+    def __init__(self, group: Group, fields: int, eps: float = 1e-5) -> None:
+        super().__init__()
+        self.group, self.eps = group, eps
+        self.weight = nn.Parameter(torch.ones(fields))
+        self.bias = nn.Parameter(torch.zeros(fields))
+
+    def forward(self, x: Tensor) -> Tensor:
+        G = self.group.order
+        w, b = self.weight.repeat_interleave(G), self.bias.repeat_interleave(G)
+        return F.layer_norm(x, x.shape[-1:], w, b, self.eps)
 
 
 class ActionLift(nn.Module):

@@ -37,6 +37,7 @@ from services.learner.core.equivariant import (
     ActionLift,
     EquivariantLSTM,
     GroupConv2d,
+    GroupLayerNorm,
     GroupLinear,
     InvariantHead,
     LiftConv2d,
@@ -74,6 +75,9 @@ class NetConfig:
     """Channels of h and c."""
     mlp_hidden: tuple[int, ...] = (128, 128)
     """Hidden channels of the actor and Q MLPs."""
+    critic_layer_norm: bool = False
+    """LayerNorm after each hidden linear layer of the Q MLPs (RLPD: bounds Q on actions the data
+    never shows; per-field affine in the equivariant nets). Off in the paper's networks."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "encoder", tuple(tuple(int(v) for v in layer) for layer in self.encoder))
@@ -251,14 +255,18 @@ def _lstm(cfg: NetConfig, group: Group | None) -> nn.Module:
     return EquivariantLSTM(group, (cfg.image_embed + cfg.action_embed) // G, cfg.lstm_hidden // G)
 
 
-def _mlp(cfg: NetConfig, group: Group | None, in_channels: int) -> nn.Sequential:
-    """Hidden layers (linear + ReLU) of width cfg.mlp_hidden."""
+def _mlp(cfg: NetConfig, group: Group | None, in_channels: int, layer_norm: bool = False) -> nn.Sequential:
+    """Hidden layers (linear [+ LayerNorm] + ReLU) of width cfg.mlp_hidden."""
     layers: list[nn.Module] = []
     for width in cfg.mlp_hidden:
         if group is None:
             layers.append(_plain_init(nn.Linear(in_channels, width), _RELU_GAIN))
+            if layer_norm:
+                layers.append(nn.LayerNorm(width))
         else:
             layers.append(GroupLinear(group, in_channels // group.order, width // group.order))
+            if layer_norm:
+                layers.append(GroupLayerNorm(group, width // group.order))
         layers.append(nn.ReLU())
         in_channels = width
     return nn.Sequential(*layers)
@@ -290,10 +298,29 @@ class _Recurrent(nn.Module):
         z = p.new_zeros(batch, self.cfg.lstm_hidden)
         return z, z
 
+    def encode(self, images: Tensor, obs_mask: Tensor | None = None) -> Tensor:
+        """e(o_t) (B, T, image_embed). With ``obs_mask`` (B, T) bool, only the real observations go
+        through the encoder and padded steps get zeros: padding comes after an episode's last step,
+        so with a causal LSTM and masked losses nothing real depends on it."""
+        B, T = images.shape[:2]
+        if obs_mask is None or bool(obs_mask.all()):
+            return self.encoder(images.flatten(0, 1)).unflatten(0, (B, T))
+        real = self.encoder(images[obs_mask])
+        emb = real.new_zeros(B, T, real.shape[-1])
+        emb[obs_mask] = real
+        return emb
+
     def recurrent(
-        self, images: Tensor, prev_actions: Tensor, state: LSTMState | None
+        self,
+        images: Tensor,
+        prev_actions: Tensor,
+        state: LSTMState | None,
+        embedding: Tensor | None = None,
+        obs_mask: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, LSTMState]:
-        """(h_t (B, T, lstm_hidden), e(o_t) (B, T, image_embed), final state)."""
+        """(h_t (B, T, lstm_hidden), e(o_t) (B, T, image_embed), final state). ``embedding``, if given,
+        is e(o_t) already computed (an encoder shared with the critic) and the encoder is skipped;
+        ``obs_mask``: see ``encode``."""
         if (
             images.dim() != 5
             or prev_actions.shape[:2] != images.shape[:2]
@@ -303,8 +330,7 @@ class _Recurrent(nn.Module):
                 f"expected images (B, T, C, H, W) and prev_actions (B, T, {ACTION_DIM}), "
                 f"got {tuple(images.shape)} and {tuple(prev_actions.shape)}"
             )
-        B, T = images.shape[:2]
-        emb = self.encoder(images.flatten(0, 1)).unflatten(0, (B, T))
+        emb = self.encode(images, obs_mask) if embedding is None else embedding
         h, state = self.lstm(torch.cat([emb, self.action_embed(prev_actions)], dim=-1), state)
         return h, emb, state
 
@@ -324,11 +350,16 @@ class Actor(_Recurrent):
         self.log_std_head = _invariant_head(cfg, self.group, out, ACTION_DIM)
 
     def forward(
-        self, images: Tensor, prev_actions: Tensor, state: LSTMState | None = None
+        self,
+        images: Tensor,
+        prev_actions: Tensor,
+        state: LSTMState | None = None,
+        embedding: Tensor | None = None,
+        obs_mask: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, LSTMState]:
         """images (B, T, C, H, W), prev_actions (B, T, 5) -> mean (B, T, 5) (pre-tanh), log_std
-        (B, T, 5) in [-20, 2], final (h, c)."""
-        h, emb, state = self.recurrent(images, prev_actions, state)
+        (B, T, 5) in [-20, 2], final (h, c). ``embedding``, ``obs_mask``: see ``recurrent``."""
+        h, emb, state = self.recurrent(images, prev_actions, state, embedding, obs_mask)
         z = self.mlp(torch.cat([h, emb], dim=-1))
         log_std = self.log_std_head(z).clamp(LOG_STD_MIN, LOG_STD_MAX)
         return self.mean_head(z), log_std, state
@@ -350,14 +381,20 @@ class Critic(_Recurrent):
         self.q_action_embed = _action_embed(cfg, self.group)
         width_in = self.feature_dim + cfg.action_embed
         out = _mlp_out(cfg, width_in)
-        self.q1 = nn.Sequential(_mlp(cfg, self.group, width_in), _invariant_head(cfg, self.group, out, 1))
-        self.q2 = nn.Sequential(_mlp(cfg, self.group, width_in), _invariant_head(cfg, self.group, out, 1))
+        ln = cfg.critic_layer_norm
+        self.q1 = nn.Sequential(_mlp(cfg, self.group, width_in, ln), _invariant_head(cfg, self.group, out, 1))
+        self.q2 = nn.Sequential(_mlp(cfg, self.group, width_in, ln), _invariant_head(cfg, self.group, out, 1))
 
     def features(
-        self, images: Tensor, prev_actions: Tensor, state: LSTMState | None = None
+        self,
+        images: Tensor,
+        prev_actions: Tensor,
+        state: LSTMState | None = None,
+        obs_mask: Tensor | None = None,
     ) -> tuple[Tensor, LSTMState]:
-        """images (B, T, C, H, W), prev_actions (B, T, 5) -> [h_t, e(o_t)] (B, T, feature_dim), final state."""
-        h, emb, state = self.recurrent(images, prev_actions, state)
+        """images (B, T, C, H, W), prev_actions (B, T, 5) -> [h_t, e(o_t)] (B, T, feature_dim), final
+        state. ``obs_mask``: see ``recurrent``."""
+        h, emb, state = self.recurrent(images, prev_actions, state, obs_mask=obs_mask)
         return torch.cat([h, emb], dim=-1), state
 
     def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:

@@ -32,9 +32,10 @@ Capacity and eviction policy:
   exceed the capacity or the table) raises ``ValueError``: nothing is dropped silently, and a
   rejected insert leaves the buffer unchanged.
 
-Sampling draws whole episodes uniformly with replacement among the stored ones, indexed in insertion
-order, so a checkpoint round trip (``state_dict``/``load_state_dict``) reproduces the same
-batches for the same generator state. Not thread-safe: the caller serialises inserts and samples.
+Sampling draws whole episodes with replacement, uniformly among the stored ones or with a fixed
+share from the demonstration set (``sample(demo_fraction=...)``), indexed in insertion order, so a
+checkpoint round trip (``state_dict``/``load_state_dict``) reproduces the same batches for the same
+generator state. Not thread-safe: the caller serialises inserts and samples.
 """
 
 from __future__ import annotations
@@ -103,6 +104,8 @@ class SequenceBatch:
     """int64 (B,): insertion serial of each episode (``SequenceReplay.episode_info``)."""
     is_demo: np.ndarray
     """bool (B,): demonstration (raw or augmented copy of one)."""
+    from_demo_set: np.ndarray
+    """bool (B,): drawn from the demonstration set (``is_demo``, or a success with ``successes_as_demos``)."""
     code_channels: tuple[int, ...]
     """Channel index in the full image of each ``image_codes`` channel."""
     constant_channels: tuple[int, ...]
@@ -150,6 +153,7 @@ def _layout(
         "ep_length": ((E,), np.dtype(np.int32)),
         "ep_serial": ((E,), np.dtype(np.int64)),
         "ep_demo": ((E,), np.dtype(np.bool_)),
+        "ep_success": ((E,), np.dtype(np.bool_)),
         "ep_kind": ((E,), np.dtype(np.int16)),
         "free_slots": ((E,), np.dtype(np.int32)),
         "order": ((E,), np.dtype(np.int32)),
@@ -199,7 +203,7 @@ class SequenceReplay:
         self._terminated, self._truncated = a["terminated"], a["truncated"]
         self._free_rows, self._free_slots, self._order = a["free_rows"], a["free_slots"], a["order"]
         self._ep_rows, self._ep_length, self._ep_serial = a["ep_rows"], a["ep_length"], a["ep_serial"]
-        self._ep_demo, self._ep_kind = a["ep_demo"], a["ep_kind"]
+        self._ep_demo, self._ep_kind, self._ep_success = a["ep_demo"], a["ep_kind"], a["ep_success"]
         self._zero_row = self._codes.shape[0] - 1
         self._reset_bookkeeping(np.zeros(0, np.int32))
 
@@ -362,6 +366,7 @@ class SequenceReplay:
         self._ep_rows[slot, : T + 1] = rows
         self._ep_rows[slot, T + 1 :] = self._zero_row
         self._ep_length[slot] = T
+        self._ep_success[slot] = bool((rewards > 0).any())
         self._order[self._n] = slot
         self._n += 1
         self._transitions += T
@@ -399,20 +404,67 @@ class SequenceReplay:
 
     # ---------------------------------------------------------------- sample
 
-    def sample(self, batch_size: int, rng: np.random.Generator | None = None) -> SequenceBatch:
-        """``batch_size`` stored episodes drawn uniformly with replacement, padded to ``seq_len``."""
+    def sample(
+        self,
+        batch_size: int,
+        rng: np.random.Generator | None = None,
+        *,
+        demo_fraction: float = 0.0,
+        successes_as_demos: bool = False,
+        trim: bool = False,
+    ) -> SequenceBatch:
+        """``batch_size`` stored episodes drawn with replacement.
+
+        ``demo_fraction`` = 0 draws uniformly among all stored episodes (the paper). Otherwise
+        ``round(demo_fraction * batch_size)`` episodes are drawn uniformly from the demonstration set
+        (raw demos and every augmented copy of one) and the rest uniformly from the other episodes
+        (RLPD's symmetric sampling); while one of the two sets is empty the whole batch comes from the
+        other. ``successes_as_demos`` adds every episode with a positive reward (online successes and
+        their copies) to that set (self-imitation); ``SequenceBatch.from_demo_set`` tells which episodes
+        were drawn from it. ``trim`` pads to the longest sampled episode instead of ``seq_len`` (the losses are
+        masked and the LSTM causal, so padding past the longest episode changes nothing but the cost).
+        """
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        if not 0.0 <= demo_fraction <= 1.0:
+            raise ValueError(f"demo_fraction must be in [0, 1], got {demo_fraction}")
         if self._n == 0:
             raise ValueError("cannot sample from an empty replay")
         rng = self._rng if rng is None else rng
-        slots = self._order[rng.integers(0, self._n, size=batch_size)]
-        return self._gather(slots)
+        if demo_fraction == 0.0:
+            slots = self._order[rng.integers(0, self._n, size=batch_size)]
+        else:
+            slots = self._sample_split(batch_size, rng, demo_fraction, successes_as_demos)
+        return self._gather(slots, trim, successes_as_demos)
 
-    def _gather(self, slots: np.ndarray) -> SequenceBatch:
-        L = self.seq_len
-        rows = self._ep_rows[slots]  # (B, L+1), padded with the zero row
+    def _in_demo_set(self, slots: np.ndarray, successes_as_demos: bool) -> np.ndarray:
+        demo = self._ep_demo[slots]
+        return demo | self._ep_success[slots] if successes_as_demos else demo
+
+    def _sample_split(
+        self, batch_size: int, rng: np.random.Generator, demo_fraction: float, successes_as_demos: bool
+    ) -> np.ndarray:
+        live = self._order[: self._n]
+        demo = self._in_demo_set(live, successes_as_demos)
+        demos, online = live[demo], live[~demo]
+        n_demo = int(round(demo_fraction * batch_size))
+        if online.size == 0:
+            n_demo = batch_size
+        elif demos.size == 0:
+            n_demo = 0
+        parts = []
+        if n_demo:
+            parts.append(demos[rng.integers(0, demos.size, size=n_demo)])
+        if batch_size - n_demo:
+            parts.append(online[rng.integers(0, online.size, size=batch_size - n_demo)])
+        return np.concatenate(parts)
+
+    def _gather(
+        self, slots: np.ndarray, trim: bool = False, successes_as_demos: bool = False
+    ) -> SequenceBatch:
         lengths = self._ep_length[slots]
+        L = int(lengths.max()) if trim else self.seq_len
+        rows = self._ep_rows[slots, : L + 1]  # (B, L+1), padded with the zero row
         mask = np.arange(L) < lengths[:, None]
         obs_mask = np.arange(L + 1) <= lengths[:, None]
         trans = np.where(mask, rows[:, :L], self._zero_row)  # an episode's last row holds no transition
@@ -428,6 +480,7 @@ class SequenceReplay:
             lengths=lengths.copy(),
             episode_index=self._ep_serial[slots],
             is_demo=self._ep_demo[slots],
+            from_demo_set=self._in_demo_set(slots, successes_as_demos),
             code_channels=self.code_channels,
             constant_channels=self.constant_channels,
         )
@@ -509,6 +562,9 @@ class SequenceReplay:
             self._arrays[name][trans_rows] = arrays[name]
         self._ep_serial[:n] = arrays["serial"]
         self._ep_demo[:n] = arrays["is_demo"]
+        self._ep_success[:n] = (
+            np.add.reduceat(arrays["rewards"] > 0, np.cumsum(lengths) - lengths) > 0 if n else False
+        )
         self._ep_kind[:n] = arrays["kind"]
         self._kind_names = [str(k) for k in state["kind_names"]]
         ids, sources = [str(s) for s in state["episode_id"]], [str(s) for s in state["source_episode_id"]]
@@ -568,7 +624,7 @@ class SequenceReplay:
         self._transitions = int(lengths.sum())
         self._ep_id = [""] * self.max_episodes
         self._ep_source = [""] * self.max_episodes
-        self._ep_serial[:], self._ep_demo[:], self._ep_kind[:] = 0, False, 0
+        self._ep_serial[:], self._ep_demo[:], self._ep_kind[:], self._ep_success[:] = 0, False, 0, False
         self._kind_names = [RAW_KIND]
         self._demo_ids: set[str] = set()
         self._demo_transitions = self._demo_episodes = 0

@@ -20,6 +20,12 @@ Speed choices (each saves one pass of an image encoder over B x (L+1) images per
   critic's (just updated) Q heads; gradients are taken only with respect to the loss's own
   parameters (``torch.autograd.grad``), so no loss can move another's parameters.
 
+Options (``SacSettings``, all off in the paper's recipe): ``bc_weight`` adds
+    L_bc = sum_t mask_t demo_b |tanh(mean_t) - a_t|^2 / sum_t mask_t demo_b
+to the actor loss (TD3+BC-style cloning of the demonstrations and their augmented copies), and
+``share_encoder`` lets the actor read the critic's image embedding, detached (SAC-AE / DrQ), so an
+update runs the encoder once with gradients (critic) and once without (target critic).
+
 ``RecurrentSAC`` wires the losses into one update (critic, actor, alpha, soft target update).
 """
 
@@ -44,6 +50,8 @@ class Batch:
     rewards: Tensor  # (B, L)
     terminated: Tensor  # (B, L) float, 1 where the task ended (no bootstrap)
     mask: Tensor  # (B, L) float, 1 on real transitions
+    demo: Tensor | None = None  # (B,) float, 1 for demonstrations (and their copies); for the BC term
+    obs_mask: Tensor | None = None  # (B, L+1) bool, real observations; padded ones skip the encoders
 
     @property
     def prev_actions(self) -> Tensor:
@@ -68,6 +76,12 @@ class SacSettings:
     """Target entropy (-action_dim)."""
     autotune_alpha: bool = True
     """Tune alpha to reach the target entropy; else keep init_alpha."""
+    bc_weight: float = 0.0
+    """Weight of a behaviour-cloning term in the actor loss: squared error between the policy's mean
+    action and the recorded action on demonstration transitions (0: off, the paper)."""
+    share_encoder: bool = False
+    """The actor reads the critic's image encoder on detached features (SAC-AE / DrQ): one encoder
+    pass with gradients per update instead of two; the actor's loss never moves the encoder."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.gamma <= 1.0:
@@ -76,6 +90,8 @@ class SacSettings:
             raise ValueError(f"tau must be in (0, 1], got {self.tau}")
         if self.lr <= 0 or self.alpha_lr <= 0 or self.init_alpha <= 0:
             raise ValueError("lr, alpha_lr and init_alpha must be positive")
+        if self.bc_weight < 0:
+            raise ValueError(f"bc_weight must be >= 0, got {self.bc_weight}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -124,8 +140,17 @@ class PolicyOutputs:
     log_std: Tensor
 
 
-def policy_outputs(actor: nn.Module, batch: Batch, noise: Tensor | None = None) -> PolicyOutputs:
-    mean, log_std, _ = actor(batch.images, batch.prev_actions)
+def _optional(**kwargs: Tensor | None) -> dict[str, Tensor]:
+    """Keyword arguments that are set (networks without an encoder, e.g. test doubles, take none)."""
+    return {k: v for k, v in kwargs.items() if v is not None}
+
+
+def policy_outputs(
+    actor: nn.Module, batch: Batch, noise: Tensor | None = None, embedding: Tensor | None = None
+) -> PolicyOutputs:
+    mean, log_std, _ = actor(
+        batch.images, batch.prev_actions, **_optional(embedding=embedding, obs_mask=batch.obs_mask)
+    )
     actions, log_probs = tanh_gaussian_sample(mean, log_std, noise)
     return PolicyOutputs(actions, log_probs, mean, log_std)
 
@@ -135,15 +160,21 @@ def critic_targets(
 ) -> Tensor:
     """y_t (B, L), without gradient."""
     with torch.no_grad():
-        feats, _ = critic_target.features(batch.images, batch.prev_actions)
+        feats, _ = critic_target.features(
+            batch.images, batch.prev_actions, **_optional(obs_mask=batch.obs_mask)
+        )
         q1, q2 = critic_target.q(feats[:, 1:], policy.actions[:, 1:].detach())
         soft_v = torch.min(q1, q2) - alpha * policy.log_probs[:, 1:].detach()
         return batch.rewards + gamma * (1.0 - batch.terminated) * soft_v
 
 
-def critic_loss(critic: nn.Module, batch: Batch, targets: Tensor) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
-    """Twin-Q regression onto ``targets``. Returns (loss, features of all L+1 steps, info)."""
-    feats, _ = critic.features(batch.images, batch.prev_actions)
+def critic_loss(
+    critic: nn.Module, batch: Batch, targets: Tensor, feats: Tensor | None = None
+) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+    """Twin-Q regression onto ``targets``. Returns (loss, features of all L+1 steps, info).
+    ``feats``: the critic's features of this batch if already computed (with gradients)."""
+    if feats is None:
+        feats, _ = critic.features(batch.images, batch.prev_actions, **_optional(obs_mask=batch.obs_mask))
     q1, q2 = critic.q(feats[:, :-1], batch.actions)
     loss = masked_mean((q1 - targets).pow(2), batch.mask) + masked_mean((q2 - targets).pow(2), batch.mask)
     info = {"q1": masked_mean(q1.detach(), batch.mask), "q2": masked_mean(q2.detach(), batch.mask)}
@@ -156,6 +187,15 @@ def actor_loss(
     """alpha log pi - min Q at the policy's own actions, on real transitions."""
     q1, q2 = critic.q(critic_features[:, :-1].detach(), policy.actions[:, :-1])
     return masked_mean(alpha * policy.log_probs[:, :-1] - torch.min(q1, q2), batch.mask)
+
+
+def bc_loss(policy: PolicyOutputs, batch: Batch) -> Tensor:
+    """Squared error between tanh(mean) and the recorded action, summed over action dims, averaged
+    over the demonstration transitions of the batch (0 when it holds none)."""
+    if batch.demo is None:
+        return policy.mean.new_zeros(())
+    err = (torch.tanh(policy.mean[:, :-1]) - batch.actions).pow(2).sum(-1)
+    return masked_mean(err, batch.mask * batch.demo[:, None])
 
 
 def alpha_loss(log_alpha: Tensor, log_probs: Tensor, mask: Tensor, target_entropy: float) -> Tensor:
@@ -195,7 +235,10 @@ class RecurrentSAC:
         self.actor, self.critic = actor, critic
         self.critic_target = copy.deepcopy(critic).requires_grad_(False)
         self.log_alpha = torch.tensor(math.log(settings.init_alpha), requires_grad=True)
-        self._actor_params = [p for p in actor.parameters() if p.requires_grad]
+        if settings.share_encoder:
+            actor.encoder = critic.encoder  # trained by the critic's loss only
+        shared = {id(p) for p in critic.parameters()}
+        self._actor_params = [p for p in actor.parameters() if p.requires_grad and id(p) not in shared]
         self._critic_params = [p for p in critic.parameters() if p.requires_grad]
         self.actor_opt = torch.optim.Adam(self._actor_params, lr=settings.lr)
         self.critic_opt = torch.optim.Adam(self._critic_params, lr=settings.lr)
@@ -208,19 +251,31 @@ class RecurrentSAC:
 
     def update(self, batch: Batch) -> dict[str, float]:
         alpha = self.alpha
-        policy = policy_outputs(self.actor, batch)
+        feats, embedding = None, None
+        if self.s.share_encoder:
+            feats, _ = self.critic.features(
+                batch.images, batch.prev_actions, **_optional(obs_mask=batch.obs_mask)
+            )
+            embedding = feats[..., -self.critic.cfg.image_embed :].detach()
+        policy = policy_outputs(self.actor, batch, embedding=embedding)
         targets = critic_targets(self.critic_target, batch, policy, alpha, self.s.gamma)
-        q_loss, feats, info = critic_loss(self.critic, batch, targets)
+        q_loss, feats, info = critic_loss(self.critic, batch, targets, feats)
         _step(self.critic_opt, q_loss, self._critic_params)
         pi_loss = actor_loss(self.critic, feats, batch, policy, alpha)
-        _step(self.actor_opt, pi_loss, self._actor_params)
+        b_loss = bc_loss(policy, batch) if self.s.bc_weight > 0 else None
+        _step(
+            self.actor_opt,
+            pi_loss if b_loss is None else pi_loss + self.s.bc_weight * b_loss,
+            self._actor_params,
+        )
         log_probs = policy.log_probs[:, :-1]
         a_loss = alpha_loss(self.log_alpha, log_probs, batch.mask, self.s.target_entropy)
         if self.s.autotune_alpha:
             _step(self.alpha_opt, a_loss, [self.log_alpha])
         soft_update(self.critic_target, self.critic, self.s.tau)
         self.updates += 1
-        return {
+        extra = {} if b_loss is None else {"bc_loss": float(b_loss.detach())}
+        return extra | {
             "critic_loss": float(q_loss.detach()),
             "actor_loss": float(pi_loss.detach()),
             "alpha_loss": float(a_loss.detach()),

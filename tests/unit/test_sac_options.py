@@ -1,0 +1,215 @@
+"""The learner's CPU-recipe options tested as math: trimmed batches and skipped padding give the padded
+batch's losses and gradients; the BC term; the shared encoder; the critic's LayerNorm keeps Q invariant."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from services.learner.core.batch import to_batch
+from services.learner.core.equivariant import GroupLayerNorm
+from services.learner.core.groups import get_group, transform_actions, transform_images, transform_regular
+from services.learner.core.networks import NetConfig, build_actor, build_critic
+from services.learner.core.replay import SequenceReplay
+from services.learner.core.sac import (
+    Batch,
+    RecurrentSAC,
+    SacSettings,
+    actor_loss,
+    bc_loss,
+    critic_loss,
+    critic_targets,
+    policy_outputs,
+)
+from tests.unit.test_replay import make_episode
+
+pytestmark = pytest.mark.unit
+
+SIZE, SEQ_LEN = 8, 12
+NET = NetConfig(group="c4", image_size=SIZE, encoder=((2, 3, 1),), final_kernel=6, image_embed=16,
+                action_embed=8, lstm_hidden=16, mlp_hidden=(16,))  # fmt: skip
+
+
+def replay_with(lengths: list[int], demos: int = 0) -> SequenceReplay:
+    replay = SequenceReplay(1_000, image_size=SIZE, seq_len=SEQ_LEN, seed=0)
+    for k, T in enumerate(lengths):
+        replay.insert(make_episode(T, seed=k, demo=k < demos))
+    return replay
+
+
+def nets(net: NetConfig = NET, seed: int = 0):
+    torch.manual_seed(seed)
+    actor, critic = build_actor(net), build_critic(net)
+    return actor, critic, build_critic(net)
+
+
+def losses_and_grads(actor, critic, target, batch: Batch, noise: torch.Tensor) -> tuple[list, list]:
+    L1 = batch.images.shape[1]
+    policy = policy_outputs(actor, batch, noise[:, :L1])
+    y = critic_targets(target, batch, policy, 0.1, 0.9)
+    q_loss, feats, _ = critic_loss(critic, batch, y)
+    pi_loss = actor_loss(critic, feats, batch, policy, 0.1) + bc_loss(policy, batch)
+    params = list(critic.parameters()) + list(actor.parameters())
+    grads = torch.autograd.grad(q_loss + pi_loss, params, allow_unused=True)
+    return [q_loss.detach(), pi_loss.detach()], [
+        torch.zeros_like(p) if g is None else g for p, g in zip(params, grads, strict=True)
+    ]
+
+
+def assert_same(a: tuple[list, list], b: tuple[list, list]) -> None:
+    for x, y in zip(a[0] + a[1], b[0] + b[1], strict=True):
+        torch.testing.assert_close(x, y, atol=1e-6, rtol=1e-5)
+
+
+def test_trimmed_batch_gives_the_padded_batchs_losses_and_gradients():
+    replay = replay_with([3, 5, 4, 6], demos=2)
+    padded = replay.sample(6, np.random.default_rng(0), demo_fraction=0.5)
+    trimmed = replay.sample(6, np.random.default_rng(0), demo_fraction=0.5, trim=True)
+    assert trimmed.seq_len == int(padded.lengths.max()) < padded.seq_len == SEQ_LEN
+    noise = torch.randn(6, SEQ_LEN + 1, 5, generator=torch.Generator().manual_seed(1))
+    full = to_batch(padded)
+    full = dataclasses.replace(full, obs_mask=None)  # encode every padded image, as before trimming
+    assert_same(losses_and_grads(*nets(), full, noise), losses_and_grads(*nets(), to_batch(trimmed), noise))
+
+
+def test_skipping_padded_images_in_the_encoders_changes_nothing():
+    replay = replay_with([2, 9, 4])
+    batch = to_batch(replay.sample(5, np.random.default_rng(2)))
+    assert not batch.obs_mask.all()
+    noise = torch.randn(5, SEQ_LEN + 1, 5, generator=torch.Generator().manual_seed(3))
+    assert_same(
+        losses_and_grads(*nets(), dataclasses.replace(batch, obs_mask=None), noise),
+        losses_and_grads(*nets(), batch, noise),
+    )
+
+
+def test_bc_loss_is_the_squared_error_on_demo_transitions_only():
+    replay = replay_with([3, 4, 5], demos=1)
+    batch = to_batch(replay.sample(4, np.random.default_rng(4), demo_fraction=0.5, trim=True))
+    actor, _, _ = nets()
+    policy = policy_outputs(actor, batch)
+    expected, count = 0.0, 0
+    for b in range(4):
+        if batch.demo[b]:
+            n = int(batch.mask[b].sum())
+            expected += float((torch.tanh(policy.mean[b, :n]) - batch.actions[b, :n]).pow(2).sum())
+            count += n
+    assert count > 0
+    torch.testing.assert_close(bc_loss(policy, batch), torch.tensor(expected / count))
+    no_demo = dataclasses.replace(batch, demo=torch.zeros(4))
+    assert float(bc_loss(policy, no_demo)) == 0.0
+
+
+def test_bc_weight_pulls_the_policy_mean_to_the_demo_actions():
+    batch = to_batch(replay_with([5], demos=1).sample(1, np.random.default_rng(5)))
+
+    def bc_after(weight: float) -> tuple[float, float]:
+        actor, critic, _ = nets()
+        sac = RecurrentSAC(actor, critic, SacSettings(bc_weight=weight, lr=3e-3, share_encoder=True))
+        with torch.no_grad():
+            before = float(bc_loss(policy_outputs(sac.actor, batch), batch))
+        for _ in range(80):
+            sac.update(batch)
+        with torch.no_grad():
+            return before, float(bc_loss(policy_outputs(sac.actor, batch), batch))
+
+    before, with_bc = bc_after(10.0)
+    _, without = bc_after(0.0)
+    assert with_bc < 0.5 * before and with_bc < 0.5 * without, (before, with_bc, without)
+
+
+def test_shared_encoder_is_trained_by_the_critic_only():
+    actor, critic, _ = nets()
+    sac = RecurrentSAC(actor, critic, SacSettings(share_encoder=True))
+    assert sac.actor.encoder is sac.critic.encoder
+    encoder = {id(p) for p in sac.critic.encoder.parameters()}
+    assert encoder and not encoder & {id(p) for p in sac._actor_params}
+    # the policy's weights blob still carries the encoder (the actor acts on its own)
+    assert any(k.startswith("encoder.") for k in sac.actor.state_dict())
+    batch = to_batch(replay_with([4, 6], demos=1).sample(3, np.random.default_rng(6)))
+    feats, _ = sac.critic.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
+    policy = policy_outputs(sac.actor, batch, embedding=feats[..., -NET.image_embed :].detach())
+    pi_loss = actor_loss(sac.critic, feats, batch, policy, 0.1) + bc_loss(policy, batch)
+    grads = torch.autograd.grad(pi_loss, list(sac.critic.encoder.parameters()), allow_unused=True)
+    assert all(g is None for g in grads)
+    enc_before = [p.clone() for p in sac.critic.encoder.parameters()]
+    sac.update(batch)
+    assert any(
+        not torch.equal(a, b) for a, b in zip(enc_before, sac.critic.encoder.parameters(), strict=True)
+    )
+
+
+def test_shared_encoder_update_equals_separate_passes_on_the_same_weights():
+    """With the actor's encoder set to the critic's, computing the embedding once is the same update."""
+    batch = to_batch(replay_with([4, 6, 3], demos=1).sample(3, np.random.default_rng(7)))
+    torch.manual_seed(9)
+    a1, c1, _ = nets()
+    shared = RecurrentSAC(a1, c1, SacSettings(share_encoder=True, bc_weight=0.5))
+    a2, c2 = build_actor(NET), build_critic(NET)
+    a2.load_state_dict(a1.state_dict())
+    c2.load_state_dict(c1.state_dict())
+    a2.encoder = c2.encoder
+    plain = RecurrentSAC(a2, c2, SacSettings(share_encoder=False, bc_weight=0.5))
+    plain._actor_params = [p for p in a2.parameters() if all(p is not q for q in c2.encoder.parameters())]
+    plain.actor_opt = torch.optim.Adam(plain._actor_params, lr=plain.s.lr)
+    torch.manual_seed(11)
+    i1 = shared.update(batch)
+    torch.manual_seed(11)
+    i2 = plain.update(batch)
+    for k in ("critic_loss", "actor_loss", "bc_loss"):
+        assert i1[k] == pytest.approx(i2[k], rel=1e-5, abs=1e-6), k
+    for p, q in zip(shared.actor.parameters(), plain.actor.parameters(), strict=True):
+        torch.testing.assert_close(p, q, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("group", ["c4", "d4"])
+@torch.no_grad()
+def test_group_layer_norm_is_equivariant_and_per_field(group):
+    G = get_group(group)
+    norm = GroupLayerNorm(G, 3)
+    norm.weight.copy_(torch.tensor([0.5, 2.0, -1.0]))
+    norm.bias.copy_(torch.tensor([0.1, -0.3, 0.7]))
+    x = torch.randn(4, 3 * G.order)
+    y = norm(x)
+    for g in G.elements:
+        torch.testing.assert_close(norm(transform_regular(x, g, G)), transform_regular(y, g, G))
+    # a per-channel affine would not be equivariant: the check above can fail
+    w = torch.randn(3 * G.order)
+    bad = torch.nn.functional.layer_norm(x, x.shape[-1:], w)
+    g = G.elements[1]
+    assert not torch.allclose(
+        torch.nn.functional.layer_norm(transform_regular(x, g, G), x.shape[-1:], w),
+        transform_regular(bad, g, G),
+    )
+
+
+@pytest.mark.parametrize("group", ["c4", "d4"])
+@torch.no_grad()
+def test_critic_with_layer_norm_keeps_q_invariant(group):
+    net = dataclasses.replace(NET, group=group, critic_layer_norm=True)
+    torch.manual_seed(1)
+    critic = build_critic(net)
+    assert any(isinstance(m, GroupLayerNorm) for m in critic.modules())
+    for m in critic.modules():
+        if isinstance(m, GroupLayerNorm):
+            m.weight.uniform_(0.5, 1.5)
+            m.bias.uniform_(-0.5, 0.5)
+    gen = torch.Generator().manual_seed(2)
+    images = torch.rand(2, 4, 2, SIZE, SIZE, generator=gen)
+    prev = torch.rand(2, 4, 5, generator=gen) * 2 - 1
+    actions = torch.rand(2, 4, 5, generator=gen) * 2 - 1
+    q1, q2 = critic.q(critic.features(images, prev)[0], actions)
+    G = get_group(group)
+    for g in G.elements:
+        feats_g, _ = critic.features(transform_images(images, g), transform_actions(prev, g))
+        q1g, q2g = critic.q(feats_g, transform_actions(actions, g))
+        torch.testing.assert_close(q1g, q1, atol=1e-4, rtol=1e-5)
+        torch.testing.assert_close(q2g, q2, atol=1e-4, rtol=1e-5)
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(ValueError, match="bc_weight"):
+        SacSettings(bc_weight=-1.0)
