@@ -67,8 +67,12 @@ class RunConfig:
     """Run seed: actors' training seeds, augmentation, networks (evaluation seeds are fixed)."""
     eval_every: int = 1000
     """Evaluate the newest weights every this many env steps (Equi-RSAC: 250-500; raise it on CPU)."""
-    eval_episodes: int = 10
-    """Evaluation episodes per evaluation (held-out seeds, deterministic policy)."""
+    eval_episodes: int = 20
+    """Evaluation episodes per evaluation (held-out seeds from 1e9, the same every time; deterministic
+    policy)."""
+    final_eval_episodes: int = 50
+    """Episodes of the evaluation at the env-step budget (the same held-out seed sequence, its first
+    final_eval_episodes seeds)."""
     record: bool = True
     """Record every raw episode to RUN_DIR/episodes/raw-<n>.mcap."""
     follow_gate: bool = True
@@ -103,8 +107,9 @@ class RunConfig:
     """Additional `module:function` entries to start as services (plugins; used by tests)."""
     log_format: str = "text"
     """Log format of the launcher and its services: json or text."""
-    final_eval_seconds: float = 300.0
-    """At the budget, how long to wait for the evaluation of the last weights before stopping."""
+    final_eval_seconds: float = 900.0
+    """At the budget, how long to wait for the evaluation of the last weights (final_eval_episodes
+    episodes) before stopping."""
 
     def __post_init__(self) -> None:
         if self.actors < 0:
@@ -115,8 +120,8 @@ class RunConfig:
             raise ValueError(f"mea_on must be one of {MEA_ON[1:]}, not {self.mea_on!r}")
         if self.mea_on and self.variant != "mea":
             raise ValueError("--mea-on applies to --variant mea only")
-        if self.env_steps < 0 or self.eval_every < 1 or self.eval_episodes < 1:
-            raise ValueError("env_steps must be >= 0, eval_every and eval_episodes >= 1")
+        if self.env_steps < 0 or min(self.eval_every, self.eval_episodes, self.final_eval_episodes) < 1:
+            raise ValueError("env_steps must be >= 0, eval_every, eval_episodes and final_eval_episodes >= 1")
         unknown = set(self.services) - set(SERVICE_ORDER)
         if unknown:
             raise ValueError(f"unknown services {sorted(unknown)}; choose from {SERVICE_ORDER}")

@@ -12,7 +12,8 @@ Each cycle (polled about 5 times a second):
      gate (steps unknown) every new version is due; if the gate goes back (a learner restarted in
      this run dir), the next version is due at once. With ``--final-env-steps B`` (the run's budget)
      the first version pulled once the steps reach B is evaluated off the cadence too, so a run
-     always ends with an evaluation at its budget.
+     always ends with an evaluation at its budget. (`mea run` passes its ``--env-steps`` here, and
+     its evaluation sizes as ``--episodes`` and ``--final-episodes``: ``LAUNCH_FIELDS``.)
   3. Only then pull the newest version with ``WeightsClient`` (pull-if-newer; versions announced in
      between are never downloaded) and load it into a fresh deterministic ``PolicyRuntime``. A blob
      that does not load (tensors that do not fit, a bad config) or wants the rendered depth image
@@ -20,14 +21,18 @@ Each cycle (polled about 5 times a second):
      (``mea_evaluator_bad_weights_total{reason}``) and skipped; the next newer version is tried
      when announced.
   4. Run ``--episodes`` M episodes in this service's own env, on the same seeds every time:
-     ``seed_base + k`` for k < M (1e9 and up: no actor ever trains on them). The policy input is
+     ``seed_base + k`` for k < M (1e9 and up: no actor ever trains on them). A version pulled at or
+     past the budget (``env_steps >= --final-env-steps > 0``) gets ``--final-episodes`` episodes
+     instead when set (the run's final, larger evaluation), on the same seed sequence: the first M
+     of its seeds are every other evaluation's. The policy input is
      ``services.actor.main.policy_input(obs, observation)`` (the voxel ``policy_image`` or the
      depth image, as the weights' spec says), the rollout ``services.actor.main.run_episode``.
      While episodes run, gates and weights announcements keep being consumed (their subscriptions
      are bounded and BLOCK: a full one would stall this process's transport and the learner).
   5. Summarise with ``services.evaluator.core.metrics``, publish an ``EvalReport`` on EVAL_REPORTS
      (``env_steps`` = the gate's inserted steps when the version was pulled, -1 if no gate was
-     seen), append one line to ``RUN_DIR/eval/history.jsonl`` and update metrics and heartbeat.
+     seen), append one line to ``RUN_DIR/eval/history.jsonl`` (with its ``episodes``, ``seeds`` and
+     ``at_budget``) and update metrics and heartbeat.
 
 A shutdown during an evaluation abandons it (nothing is reported for a partial evaluation).
 History lines already in the file (a restarted evaluator) count for the improvement timestep and
@@ -85,7 +90,7 @@ class EvaluatorConfig:
     task: str = "block_pull"
     """Task: block_pull, block_pick or drawer_open."""
     episodes: int = 10
-    """Evaluation episodes M per version (Equi-RSAC: 10)."""
+    """Evaluation episodes M per version (Equi-RSAC: 10; `mea run` passes its --eval-episodes, 20)."""
     every_env_steps: int = 250
     """Evaluate the newest version once the learner's env steps advanced by this much since the last
     evaluation (Equi-RSAC: 250 for Pull and Drawer, 500 for Pick). The first version is evaluated as
@@ -98,6 +103,9 @@ class EvaluatorConfig:
     final_env_steps: int = 0
     """The run's env-step budget: once the learner reaches it, the next version is evaluated off the
     cadence, so the run ends with an evaluation at its budget (0: no budget)."""
+    final_episodes: int = 0
+    """Episodes of an evaluation at or past the budget (final_env_steps), on seeds seed_base ..
+    seed_base + final_episodes - 1 (0: --episodes; `mea run` passes its --final-eval-episodes, 50)."""
     points_per_segment: int = 256
     """Points per segment in each observation (as the actors')."""
     depth_image: bool = False
@@ -116,9 +124,11 @@ class EvaluatorConfig:
             raise ValueError(f"task must be one of {sorted(TASKS)}, not {self.task!r}")
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
-        if min(self.every_env_steps, self.final_env_steps, self.max_evaluations, self.first_gate_wait) < 0:
+        if min(self.every_env_steps, self.final_env_steps, self.final_episodes, self.max_evaluations,
+               self.first_gate_wait) < 0:  # fmt: skip
             raise ValueError(
-                "every_env_steps, final_env_steps, max_evaluations and first_gate_wait must be >= 0"
+                "every_env_steps, final_env_steps, final_episodes, max_evaluations and first_gate_wait "
+                "must be >= 0"
             )
         if self.seed_base < 0 or self.torch_threads < 0 or self.points_per_segment < 1:
             raise ValueError("seed_base and torch_threads must be >= 0, points_per_segment >= 1")
@@ -130,7 +140,18 @@ class EvaluatorConfig:
 
     @property
     def seeds(self) -> tuple[int, ...]:
-        return tuple(self.seed_base + k for k in range(self.episodes))
+        """The held-out seeds of an evaluation before the budget."""
+        return self.seeds_at(-1)
+
+    def at_budget(self, env_steps: int) -> bool:
+        """Is a version pulled at ``env_steps`` the run's final evaluation (at or past the budget)?"""
+        return 0 < self.final_env_steps <= env_steps
+
+    def seeds_at(self, env_steps: int) -> tuple[int, ...]:
+        """The held-out seeds of an evaluation of a version pulled at ``env_steps``: ``episodes`` of
+        them, or ``final_episodes`` (when set) at the budget; always a prefix of one seed sequence."""
+        n = self.final_episodes if self.at_budget(env_steps) and self.final_episodes > 0 else self.episodes
+        return tuple(self.seed_base + k for k in range(n))
 
 
 PRESETS = {"default": EvaluatorConfig()}
@@ -281,11 +302,11 @@ class Evaluator:
         if self.ctx.shutdown.is_set():
             raise _StopRequestedError
 
-    def rollouts(self, runtime) -> list:
-        """M deterministic episodes on the fixed held-out seeds."""
+    def rollouts(self, runtime, seeds: Sequence[int] | None = None) -> list:
+        """Deterministic episodes on the fixed held-out seeds (default: the regular ``--episodes``)."""
         results = []
         observation = runtime.spec.observation
-        for seed in self.cfg.seeds:
+        for seed in self.cfg.seeds if seeds is None else seeds:
             t0 = time.perf_counter()
             runtime.reset()
             builder = EpisodeBuilder(task=self.cfg.task, seed=seed, actor_id=self.ctx.instance,
@@ -300,12 +321,18 @@ class Evaluator:
     def evaluate(self, blob: WeightsBlob, runtime, env_steps: int) -> dict | None:
         """Evaluate one version, report it and record it; returns the history record (None if aborted)."""
         t0, created = time.monotonic(), time.time()
+        seeds, at_budget = self.cfg.seeds_at(env_steps), self.cfg.at_budget(env_steps)
         log.info(
             "evaluating",
-            extra={"version": blob.version, "env_steps": env_steps, "episodes": self.cfg.episodes},
+            extra={
+                "version": blob.version,
+                "env_steps": env_steps,
+                "episodes": len(seeds),
+                "at_budget": at_budget,
+            },
         )
         try:
-            results = self.rollouts(runtime)
+            results = self.rollouts(runtime, seeds)
         except _StopRequestedError:
             log.info("evaluation abandoned at shutdown", extra={"version": blob.version})
             return None
@@ -324,6 +351,7 @@ class Evaluator:
             "mean_length": s.mean_length,
             "grasp_score": s.grasp_score,
             "episodes": s.episodes,
+            "at_budget": at_budget,
             "seeds": [r.seed for r in results],
             "successes": [r.success for r in results],
             "lengths": [r.length for r in results],
@@ -407,7 +435,10 @@ def _run(cfg: EvaluatorConfig, bus_factory: Callable[[ServiceConfig], Bus] | Non
         core = Evaluator(cfg, ctx, gate, weights, env)  # type: ignore[arg-type]
         holder["core"] = core
         ctx.detail = f"{cfg.task}: {cfg.episodes} episodes every {cfg.every_env_steps} env steps"
+        if cfg.final_env_steps:
+            ctx.detail += f", {len(cfg.seeds_at(cfg.final_env_steps))} at {cfg.final_env_steps}"
         log.info("evaluating broadcast weights", extra={"task": cfg.task, "episodes": cfg.episodes,
+                                                       "final_episodes": len(cfg.seeds_at(cfg.final_env_steps)),
                                                        "every_env_steps": cfg.every_env_steps,
                                                        "seed_base": cfg.seed_base,
                                                        "history": str(core.history_path)})  # fmt: skip
@@ -431,6 +462,7 @@ LAUNCH_FIELDS = (
     ("eval_every", "--every-env-steps"),
     ("eval_episodes", "--episodes"),
     ("env_steps", "--final-env-steps"),
+    ("final_eval_episodes", "--final-episodes"),
 )
 """RunConfig fields passed on when the launcher's config has them: (field, evaluator flag)."""
 
@@ -438,7 +470,7 @@ LAUNCH_FIELDS = (
 def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
     """Arguments `mea run` passes to the evaluator: the run's task and its run dir (for the history);
     then, where the run config has them, its evaluation cadence and episodes, its env-step budget
-    (the final evaluation), and the rendered depth image for the equirsac variant."""
+    and the episodes of the evaluation there, and the rendered depth image for the equirsac variant."""
     args = ["--task", run_cfg.task, "--run-dir", str(run_dir)]
     for name, flag in LAUNCH_FIELDS:
         value = getattr(run_cfg, name, None)

@@ -6,9 +6,10 @@ training env steps: the mean over a label's runs as a line, mean ± std as a sha
 put on a common env-step grid first (``services.evaluator.core.metrics.align``: step-wise hold of
 the last evaluation by default, or linear interpolation; a run contributes only within its own
 evaluated span). It also prints one table row per label: runs, evaluations, final success (the
-last evaluation of each run, mean ± std over runs), and the improvement timestep (first env steps
-after which success stays > 0), both averaged over the runs that have one and measured on the
-mean curve (the paper's reading).
+last evaluation of each run, mean ± std over runs), the area under the success curve (AUC: mean
+success over each run's evaluated env-step range by the trapezoid rule, in [0, 1]; mean ± std over
+runs), and the improvement timestep (first env steps after which success stays > 0), both averaged
+over the runs that have one and measured on the mean curve (the paper's reading).
 
 Label: the ``--label-by`` key (default ``variant``; dots reach into nested objects) of
 ``RUN_DIR/config.json`` when present, else the run directory's name.
@@ -36,6 +37,7 @@ from services.evaluator.core.metrics import (
     improvement_timestep,
     mean_std,
     read_history,
+    success_auc,
 )
 
 HISTORY = Path("eval") / "history.jsonl"
@@ -106,12 +108,16 @@ def summary_row(g: Group) -> dict:
     finals = np.array([r.success[-1] for r in g.runs])
     per_run = [improvement_timestep(r.steps, r.success) for r in g.runs]
     have = [t for t in per_run if t is not None]
+    aucs = np.array([success_auc(r.steps, r.success) for r in g.runs], dtype=np.float64)
     return {
         "label": g.label,
         "runs": len(g.runs),
         "evaluations": int(sum(r.steps.size for r in g.runs)),
         "final_mean": float(finals.mean()),
         "final_std": float(finals.std()),
+        "auc_mean": float(aucs.mean()),
+        "auc_std": float(aucs.std()),
+        "auc_of_mean": success_auc(g.grid, g.mean),
         "improvement_mean": float(np.mean(have)) if have else None,
         "improvement_runs": len(have),
         "improvement_of_mean": improvement_timestep(g.grid, g.mean),
@@ -127,6 +133,7 @@ def format_table(rows: Sequence[dict]) -> str:
         "runs",
         "evals",
         "final success",
+        "AUC",
         "improvement (runs with one)",
         "improvement (mean curve)",
     )
@@ -136,6 +143,7 @@ def format_table(rows: Sequence[dict]) -> str:
             str(r["runs"]),
             str(r["evaluations"]),
             f"{r['final_mean']:.2f} ± {r['final_std']:.2f}",
+            f"{r['auc_mean']:.2f} ± {r['auc_std']:.2f}",
             f"{steps(r['improvement_mean'])} ({r['improvement_runs']}/{r['runs']})",
             steps(r["improvement_of_mean"]),
         )

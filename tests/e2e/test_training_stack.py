@@ -45,6 +45,7 @@ def test_mea_run_trains_end_to_end_and_stops_at_the_budget(tmp_path):
     run_dir = tmp_path / "run"
     cmd = [sys.executable, "-m", "services.cli", "run", "--task", "block_pull", "--demos", "1",
            "--actors", "1", "--env-steps", str(BUDGET), "--eval-every", "150", "--eval-episodes", "1",
+           "--final-eval-episodes", "1",
            "--learner-preset", "smoke", "--listen", f"tcp/127.0.0.1:{port}", "--metrics-port", "0",
            "--run-dir", str(run_dir), "--final-eval-seconds", "90"]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)), stdout=subprocess.PIPE,

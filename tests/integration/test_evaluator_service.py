@@ -152,19 +152,42 @@ def test_launch_args_pass_the_task_the_run_dir_and_the_runs_eval_settings(tmp_pa
     from services.launcher import RunConfig
 
     args = launch_args(RunConfig(task="block_pick", variant="equirsac", eval_every=500, eval_episodes=4,
-                                 env_steps=2000), tmp_path, 0)  # fmt: skip
+                                 final_eval_episodes=7, env_steps=2000), tmp_path, 0)  # fmt: skip
     assert args == ["--task", "block_pick", "--run-dir", str(tmp_path), "--every-env-steps", "500",
-                    "--episodes", "4", "--final-env-steps", "2000", "--depth-image"]  # fmt: skip
+                    "--episodes", "4", "--final-env-steps", "2000", "--final-episodes", "7",
+                    "--depth-image"]  # fmt: skip
     from services.common import config
     from services.evaluator.main import PRESETS
 
     cfg = config.parse(EvaluatorConfig, PRESETS, args, "mea evaluator", "")
     assert (cfg.task, cfg.run_dir, cfg.every_env_steps, cfg.episodes) == ("block_pick", tmp_path, 500, 4)
-    assert cfg.final_env_steps == 2000 and cfg.depth_image
+    assert cfg.final_env_steps == 2000 and cfg.final_episodes == 7 and cfg.depth_image
+    # `mea run`'s defaults reach the evaluator: 20 episodes per evaluation, 50 at the budget
+    defaults = config.parse(
+        EvaluatorConfig, PRESETS, launch_args(RunConfig(), tmp_path, 0), "mea evaluator", ""
+    )
+    assert (defaults.episodes, defaults.final_episodes, defaults.final_env_steps) == (20, 50, 40_000)
+    assert defaults.every_env_steps == 1000
     with pytest.raises(ValueError):
         EvaluatorConfig(task="stack")
     with pytest.raises(ValueError):
         EvaluatorConfig(episodes=0)
+    with pytest.raises(ValueError):
+        EvaluatorConfig(final_episodes=-1)
+
+
+def test_held_out_seeds_at_the_budget_extend_the_same_sequence():
+    cfg = EvaluatorConfig(episodes=3, final_episodes=5, final_env_steps=2000, seed_base=100)
+    assert cfg.seeds == cfg.seeds_at(1999) == cfg.seeds_at(-1) == (100, 101, 102)
+    assert cfg.seeds_at(2000) == cfg.seeds_at(2500) == (100, 101, 102, 103, 104)
+    assert cfg.at_budget(2000) and not cfg.at_budget(1999)
+    # no budget, or no final size: every evaluation has --episodes
+    assert EvaluatorConfig(episodes=3, final_episodes=5).seeds_at(10**6) == (
+        1_000_000_000,
+        1_000_000_001,
+        1_000_000_002,
+    )
+    assert EvaluatorConfig(episodes=3, final_env_steps=2000, seed_base=0).seeds_at(2000) == (0, 1, 2)
 
 
 class _FakeEnv:
@@ -227,3 +250,77 @@ def test_a_restarted_evaluator_keeps_the_cadence_and_improvement_from_its_histor
     assert not ev.due()
     _at(gate, 750)
     assert ev.due()
+
+
+def test_the_evaluation_at_the_budget_runs_final_episodes_held_out_seeds(tmp_path, monkeypatch):
+    """Driven cycle by cycle (gate -> due -> pull -> rollouts -> report + history) with a fake env,
+    policy and rollout: before the budget M seeds, at the budget the first M_final of the same ones."""
+    from types import SimpleNamespace
+
+    import services.evaluator.main as evaluator_main
+    import services.learner.core.policy as policy_module
+
+    rolled: list[int] = []
+
+    def fake_run_episode(env, seed, act, builder, on_step=None):
+        rolled.append(seed)
+        success = seed % 2 == 0  # even seeds succeed after 10 steps, odd ones time out at 50
+        for t in range(10 if success else 50):
+            builder.step(np.zeros(5, np.float32), float(success and t == 9), success and t == 9, t == 49)
+        return builder
+
+    class FakeRuntime:
+        def __init__(self, deterministic: bool, seed: int) -> None:
+            assert deterministic
+            self.spec = SimpleNamespace(observation="policy_image")
+            self.version = -1
+
+        def load(self, blob) -> None:
+            self.version = blob.version
+
+        def reset(self) -> None:
+            pass
+
+    class FakeWeights:
+        def __init__(self) -> None:
+            self.pending: list = []
+
+        def poll(self):
+            return self.pending.pop(0) if self.pending else None
+
+        def absorb_announcements(self) -> None:
+            pass
+
+    monkeypatch.setattr(evaluator_main, "run_episode", fake_run_episode)
+    monkeypatch.setattr(policy_module, "PolicyRuntime", FakeRuntime)
+    published: list = []
+    ev, gate_tracker = _cadence_evaluator(tmp_path, episodes=3, final_episodes=6, every_env_steps=1000,
+                                          final_env_steps=2500)  # fmt: skip
+    ev.ctx.bus = SimpleNamespace(publish=lambda topic, msg, source: published.append(msg))
+    ev.env.segment_names = ("gripper", "object_a", "object_b")
+    weights = FakeWeights()
+    ev.weights = weights
+
+    def blob(version: int) -> SimpleNamespace:
+        return SimpleNamespace(version=version, run_id="run-1")
+
+    for steps, version, evaluated in ((1000, 1, True), (1500, 2, False), (2000, 3, True), (2600, 4, True)):
+        _at(gate_tracker, steps)
+        weights.pending.append(blob(version))
+        assert ev.step() is evaluated, steps
+        if not evaluated:
+            weights.pending.clear()
+
+    base = 1_000_000_000
+    regular, final = [base, base + 1, base + 2], [base + k for k in range(6)]
+    assert rolled == regular + regular + final
+    assert [(r.policy_version, r.env_steps, r.episodes) for r in published] == [(1, 1000, 3), (3, 2000, 3),
+                                                                                 (4, 2600, 6)]  # fmt: skip
+    assert published[-1].success_rate == pytest.approx(3 / 6) and published[0].success_rate == pytest.approx(
+        2 / 3
+    )
+    history = read_history(tmp_path / "eval" / "history.jsonl")
+    assert [(h["env_steps"], h["episodes"], h["at_budget"]) for h in history] == [(1000, 3, False), (2000, 3, False),
+                                                                                   (2600, 6, True)]  # fmt: skip
+    assert [h["seeds"] for h in history] == [regular, regular, final]
+    assert history[-1]["successes"] == [True, False] * 3 and len(history[-1]["lengths"]) == 6

@@ -21,6 +21,8 @@ from services.evaluator.core.metrics import (
     mean_std,
     read_history,
     run_improvement_timestep,
+    run_success_auc,
+    success_auc,
     summarize,
 )
 
@@ -102,6 +104,57 @@ def test_improvement_timestep_of_a_history_ignores_unknown_steps():
     assert run_improvement_timestep([]) is None
     with pytest.raises(ValueError):
         improvement_timestep([1, 2], [0.1])
+
+
+# ---------------------------------------------------------------------------- area under the curve
+
+
+@pytest.mark.parametrize(
+    ("steps", "success", "expected"),
+    [
+        # even spacing: (0 + .5)/2*100 + (.5 + 1)/2*100 = 100 over a 200-step range
+        ([0, 100, 200], [0.0, 0.5, 1.0], 0.5),
+        # uneven spacing weighs each segment by its width: (.2+.6)/2*100 + (.6+0)/2*300 = 130 over 400
+        ([0, 100, 400], [0.2, 0.6, 0.0], 0.325),
+        # the same evaluations in another order: sorted by steps first
+        ([400, 0, 100], [0.0, 0.2, 0.6], 0.325),
+        # a range that does not start at 0: (0+1)/2*1000 + 1*2000 = 2500 over 3000
+        ([1000, 2000, 4000], [0.0, 1.0, 1.0], 2500 / 3000),
+        ([0, 1000], [1.0, 1.0], 1.0),  # always successful: 1
+        ([0, 1000, 2000], [0.0, 0.0, 0.0], 0.0),
+        ([500], [0.4], 0.4),  # a single evaluation: its own success
+        ([500, 500], [0.2, 0.4], 0.3),  # several at one step, no range: their mean
+        ([0, 100, 200], [0.2, float("nan"), 0.4], 0.3),  # a NaN point (no run there) is left out
+        ([], [], None),
+    ],
+)
+def test_success_auc_is_the_trapezoid_mean_over_the_evaluated_range(steps, success, expected):
+    got = success_auc(steps, success)
+    if expected is None:
+        assert got is None
+    else:
+        assert got == pytest.approx(expected, abs=1e-12)
+        assert 0.0 <= got <= 1.0
+
+
+def test_success_auc_is_not_the_plain_mean_of_the_evaluations():
+    # plain mean of [0, 0, 1] is 1/3; the curve spends 900 of 1000 steps at 0 and rises in the last 100
+    assert success_auc([0, 900, 1000], [0.0, 0.0, 1.0]) == pytest.approx(0.05)
+    with pytest.raises(ValueError):
+        success_auc([0, 1], [0.5])
+
+
+def test_success_auc_of_a_history_uses_its_curve():
+    records = [
+        {"env_steps": -1, "success_rate": 1.0},  # unknown steps: not on the curve
+        {"env_steps": 0, "success_rate": 0.0},
+        {"env_steps": 100, "success_rate": 0.9},  # replaced by the later record at 100
+        {"env_steps": 300, "success_rate": 0.5},
+        {"env_steps": 100, "success_rate": 0.5},
+    ]
+    # curve: (0, 0), (100, .5), (300, .5): (0+.5)/2*100 + .5*200 = 125 over 300
+    assert run_success_auc(records) == pytest.approx(125 / 300)
+    assert run_success_auc([]) is None
 
 
 # ---------------------------------------------------------------------------- history file

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -87,3 +88,20 @@ def test_plot_is_registered_in_the_cli():
     from services.cli import COMMANDS, available
 
     assert COMMANDS["plot"][0] == "services.evaluator.plot" and available("plot")
+
+
+def test_the_table_has_the_auc_beside_final_success(tmp_path, capsys):
+    # a: (0+1)/2*100 + 1*100 = 150 over 200 -> 0.75; b: (0+.5)/2*200 = 50 over 200 -> 0.25
+    a = make_run(tmp_path, "a", [(0, 0.0), (100, 1.0), (200, 1.0)], variant="x")
+    b = make_run(tmp_path, "b", [(0, 0.0), (200, 0.5)], variant="x")
+    (g,) = group_runs([load_run(a, "variant"), load_run(b, "variant")])
+    row = summary_row(g)
+    assert row["auc_mean"] == pytest.approx(0.5) and row["auc_std"] == pytest.approx(0.25)
+    # the mean curve (hold): [0, .5, .75] at [0, 100, 200]: (0+.5)/2*100 + (.5+.75)/2*100 = 87.5 over 200
+    assert row["auc_of_mean"] == pytest.approx(0.4375)
+    assert main([str(a), str(b), "--out", str(tmp_path / "c.png")]) == 0
+    head, _, body = capsys.readouterr().out.splitlines()[:3]
+    assert head.index("final success") < head.index("AUC") < head.index("improvement")
+    cells = re.split(r"\s{2,}", body)
+    assert cells[:5] == ["x", "2", "5", "0.75 ± 0.25", "0.50 ± 0.25"]  # final success (1, .5), AUC (.75, .25)
+    assert body.index("0.50 ± 0.25") == head.index("AUC")  # under its heading

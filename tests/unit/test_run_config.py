@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import pytest
 
@@ -52,6 +53,31 @@ def test_resume_reuses_the_saved_settings_with_new_seeds_and_no_demos(tmp_path):
     assert resumed_config(dataclasses.replace(cli)).resumes == 2
     with pytest.raises(SystemExit, match="config.json"):
         resumed_config(RunConfig(resume=tmp_path / "missing"))
+
+
+def test_evaluation_defaults_20_episodes_every_1000_env_steps_and_50_at_the_budget(tmp_path):
+    from services.launcher import PRESETS
+
+    d = RunConfig()
+    assert (d.eval_every, d.eval_episodes, d.final_eval_episodes, d.env_steps) == (1000, 20, 50, 40_000)
+    assert d.final_eval_seconds >= 600  # 50 episodes on a loaded CPU need the time
+    cfg = config.parse(
+        RunConfig, PRESETS, ["--eval-episodes", "25", "--final-eval-episodes", "60"], "mea run", ""
+    )
+    assert (cfg.eval_episodes, cfg.final_eval_episodes) == (25, 60)
+    for bad in ({"final_eval_episodes": 0}, {"eval_episodes": 0}):
+        with pytest.raises(ValueError, match="final_eval_episodes"):
+            RunConfig(**bad)
+    # a resumed run keeps its evaluation sizes; one saved before --final-eval-episodes existed gets 50
+    config.save(
+        RunConfig(eval_episodes=30, final_eval_episodes=70, run_dir=tmp_path), tmp_path / "config.json"
+    )
+    assert resumed_config(RunConfig(resume=tmp_path)).final_eval_episodes == 70
+    old = json.loads((tmp_path / "config.json").read_text())
+    del old["final_eval_episodes"]
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    resumed = resumed_config(RunConfig(resume=tmp_path, final_eval_episodes=5))
+    assert (resumed.eval_episodes, resumed.final_eval_episodes) == (30, 50)
 
 
 def beat(service: str, instance: str, t: float, **counters: float) -> Heartbeat:

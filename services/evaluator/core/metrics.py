@@ -21,6 +21,15 @@ Improvement timestep (MEA paper, EquiObs ablation)
     mean-over-seeds curve it is the paper's definition; :func:`improvement_timestep` takes any
     (steps, values) pair.
 
+Area under the success curve (AUC)
+    :func:`success_auc`: the trapezoid-rule integral of the success rate over ``env_steps`` divided
+    by the evaluated range (last minus first evaluation's ``env_steps``), i.e. the mean success over
+    that range, in [0, 1] for success rates. Uneven spacing is weighted by the spacing; a single
+    evaluation (zero-width range) gives its own value; no evaluation gives ``None``. Points whose
+    value is NaN (a grid point no run covers) are left out. It summarises how early *and* how well a
+    run learns in one number, where success at the budget and the improvement timestep each see
+    one side.
+
 Eval history (``RUN_DIR/eval/history.jsonl``)
     One JSON object per evaluation, appended (and fsynced) as each evaluation finishes. A line that
     does not parse (typically a last line truncated by a crash) is skipped with a logged warning,
@@ -141,6 +150,30 @@ def improvement_timestep(steps: Sequence[float], values: Sequence[float]) -> flo
         return None
     out = s[i]
     return int(out) if float(out).is_integer() else float(out)
+
+
+def success_auc(steps: Sequence[float], values: Sequence[float]) -> float | None:
+    """Normalised area under a (steps, values) curve: the trapezoid rule on ``steps`` divided by the
+    evaluated range, i.e. the mean value over it (see the module docstring). ``None`` if empty."""
+    s = np.asarray(steps, dtype=np.float64)
+    v = np.asarray(values, dtype=np.float64)
+    if s.shape != v.shape or s.ndim != 1:
+        raise ValueError(f"steps {s.shape} and values {v.shape} must be equal-length 1-D")
+    keep = ~(np.isnan(s) | np.isnan(v))
+    s, v = s[keep], v[keep]
+    if s.size == 0:
+        return None
+    order = np.argsort(s, kind="stable")
+    s, v = s[order], v[order]
+    width = s[-1] - s[0]
+    if width == 0:
+        return float(v.mean())  # one evaluation (or several at the same steps): no range to average over
+    return float(np.sum((v[1:] + v[:-1]) * np.diff(s)) / 2.0 / width)
+
+
+def run_success_auc(records: Iterable[Mapping], key: str = "success_rate") -> float | None:
+    """:func:`success_auc` of one run's history (as :func:`curve` reads it)."""
+    return success_auc(*curve(records, key))
 
 
 def run_improvement_timestep(records: Iterable[Mapping], key: str = "success_rate") -> int | None:
@@ -290,5 +323,7 @@ __all__ = [
     "mean_std",
     "read_history",
     "run_improvement_timestep",
+    "run_success_auc",
+    "success_auc",
     "summarize",
 ]
