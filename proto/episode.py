@@ -49,7 +49,8 @@ class Augmentation(Message):
     phase_split: int = spec(Int(0, 100_000), "H_p: first step of the trivial phase (MEA); 0 if not MEA")
     params: dict = spec(
         MapOf(Arr(("float32", "float64", "int64"), ("N",), finite=True)),
-        "group parameters, 1-D arrays by name (e.g. `rotation` (1,), `delta_r` (H_p,))",
+        "group parameters, 1-D arrays by name (e.g. `rotation` (1,): rad, chosen so that no turned "
+        "action leaves [-1, 1] (1.5); `delta_r` (H_p,))",
     )
 
 

@@ -42,9 +42,17 @@ import numpy as np
 
 from proto.episode import Episode
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW
-from services.augmenter.core.isometric import compose_with_mea, isometric_copy
-from services.augmenter.core.mea import DELTA_THETA, DELTA_XYZ, augment
-from services.augmenter.core.pipeline import AugmentSettings, augment_episode, episode_seed, with_images
+from services.augmenter.core.isometric import compose_with_mea
+from services.augmenter.core.mea import DELTA_THETA, DELTA_XYZ
+from services.augmenter.core.pipeline import (
+    AugmentSettings,
+    augment_episode,
+    episode_seed,
+    isometric_copies,
+    mea_copies,
+    shared_rotation,
+    with_images,
+)
 from services.bench.report import emit
 
 TARGET_PER_CORE = 5_000.0
@@ -181,18 +189,14 @@ def staged(raw: Episode, s: AugmentSettings) -> tuple[list[Episode], dict[str, f
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     seed = episode_seed(s.seed, raw.episode_id)
-    out = [raw]
-    for k in range(s.isometric_copies):
-        phi = float(np.random.default_rng([seed, k]).uniform(0, 2 * math.pi))
-        out.append(isometric_copy(raw, phi, seed=seed, copy_index=k, episode_id=f"{raw.episode_id}.iso{k}"))
+    out = [raw, *isometric_copies(raw, s.isometric_copies, seed)]
     t1 = time.perf_counter()
     if s.applies_mea(raw):
-        phi = float(np.random.default_rng([seed, 1_000_000]).uniform(0, 2 * math.pi))
-        for k in range(s.mea_copies):
-            rng = np.random.default_rng([seed, 1_000_001 + k])
-            copy, _ = augment(raw, s.mea, rng, seed=seed, copy_index=k, episode_id=f"{raw.episode_id}.mea{k}")
-            if copy is not None:
-                out.append(compose_with_mea(copy, phi) if s.isometric_on_mea else copy)
+        made = [copy for copy, _ in mea_copies(raw, s.mea, s.mea_copies, seed) if copy is not None]
+        if s.isometric_on_mea and made:
+            phi = shared_rotation(seed, made)
+            made = [compose_with_mea(copy, phi) for copy in made]
+        out += made
     t2 = time.perf_counter()
     if s.reproject:
         out = [with_images(e, s.projection) for e in out]

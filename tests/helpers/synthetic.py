@@ -44,8 +44,9 @@ class SyntheticWorld:
         return points, poses
 
 
-def synthetic_episode(seed: int, T: int = 20) -> tuple[Episode, SyntheticWorld]:
-    """An approach from above (height 0.38) that goes below L_z around the middle, then contact-like steps."""
+def synthetic_episode(seed: int, T: int = 20, xy: np.ndarray | None = None) -> tuple[Episode, SyntheticWorld]:
+    """An approach from above (height 0.38) that goes below L_z around the middle, then contact-like
+    steps; ``xy`` (T, 2) replaces the drawn (dx, dy) actions."""
     rng = np.random.default_rng(seed)
     world = SyntheticWorld(rng)
     actions = rng.uniform(-0.5, 0.5, (T, 5)).astype(np.float32)
@@ -54,6 +55,8 @@ def synthetic_episode(seed: int, T: int = 20) -> tuple[Episode, SyntheticWorld]:
     actions[:down_at, 3] = rng.uniform(-0.4, 0.2, down_at)  # drift while high
     actions[down_at : down_at + 3, 3] = -1.0  # descend below L_z
     actions[down_at + 3 :, 3] = 0.0
+    if xy is not None:
+        actions[:, 1:3] = xy
     pos0 = np.array([rng.uniform(0.4, 0.6), rng.uniform(-0.1, 0.1), 0.38])
     points, poses = world.rollout(pos0, float(rng.uniform(-1, 1)), actions)
     terminated = np.zeros(T, bool)

@@ -1,4 +1,5 @@
-"""The physics audit of MEA copies: un-augmented replays and real copies pass, wrong copies fail.
+"""The physics audit: un-augmented replays, MEA copies and rotated copies pass, wrong copies fail,
+and a rotated copy that fits nowhere in the simulator is reported as not simulable.
 
 One block_pick demonstration (direct style, ~8 steps) is recorded once per module; every replay
 costs ~40 ms per step on one core.
@@ -22,7 +23,10 @@ from services.augmenter.audit import (
     record_demos,
     surface_mm,
 )
+from services.augmenter.audit_placement import NotSimulableError, place, plan_placement, yaw_branch
+from services.augmenter.core.isometric import isometric_copy, rotation_fits
 from services.augmenter.core.mea import MeaSettings, augment
+from services.augmenter.core.pipeline import episode_seed, isometric_copies
 
 pytestmark = pytest.mark.unit
 
@@ -136,11 +140,101 @@ def test_wrong_reward_is_flagged(pick):
     assert not r.reward_ok[-1] and not r.valid[-1] and r.valid[:-1].all()
 
 
+def placed_isometric_copy(env, demo):
+    """The first of the demo's isometric copies (as the pipeline draws them) that the sim can place."""
+    for copy in isometric_copies(demo, 8, episode_seed(0, demo.episode_id)):
+        try:
+            return copy, plan_placement(env, copy)
+        except NotSimulableError:
+            continue
+    pytest.fail("none of 8 isometric copies can be placed")
+
+
+def _yaw(quat):
+    x, y, z, w = np.asarray(quat, np.float64).T
+    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+@pytest.mark.timeout(60)
+def test_a_rotated_copy_is_played_in_the_turned_scene(pick):
+    env, demo = pick
+    copy, placement = placed_isometric_copy(env, demo)
+    phi = float(copy.augmentation.params["rotation"][0])
+    assert phi != 0.0 and placement.phi == phi
+    obs = place(env, demo.seed, placement.episode.gripper_pose[0], float(demo.jaw[0]), placement=placement)
+    # the sim's objects and gripper start where the placed copy says: turned by phi, shifted alike
+    placed = placement.episode
+    np.testing.assert_allclose(obs.object_poses[:, :3], placed.object_poses[0, :, :3], atol=1e-3)
+    dyaw = _yaw(obs.object_poses[:, 3:]) - _yaw(demo.object_poses[0, :, 3:]) - phi
+    assert np.all(np.abs((dyaw + np.pi) % (2 * np.pi) - np.pi) < 1e-3)
+    np.testing.assert_allclose(obs.gripper_pose[:3], placed.gripper_pose[0, :3], atol=1e-3)
+    shift = placed.gripper_pose[:, :2] - copy.gripper_pose[:, :2]  # one world translation for all
+    np.testing.assert_allclose(shift, np.broadcast_to(shift[0], shift.shape), atol=1e-5)
+    # replayed: valid in free space, rewards reproduced, pivot on the turned path
+    r = audit_episode(env, copy, demo)
+    assert r.valid[~r.touched[1:]].all(), (r.chamfer, r.surface, r.jaw_error)
+    assert r.reward_ok.all() and r.terminated_ok.all() and (r.pivot_error_mm < 2.0).all()
+    # a shortened first move (what clipping a rotated diagonal did) is flagged
+    short = np.array(copy.actions, copy=True)
+    assert np.abs(short[0, 1:3]).max() > 0.5
+    short[0, 1:3] *= 0.6
+    bad = audit_episode(env, dataclasses.replace(copy, actions=short), demo)
+    assert not bad.valid[0] and not bad.obs_ok[1]
+
+
+@pytest.mark.timeout(60)
+def test_a_copy_past_the_wrist_range_is_not_simulable(pick):
+    env, demo = pick
+    phis = [p for p in np.linspace(0, 2 * np.pi, 73)[1:-1] if rotation_fits(demo.actions, p)]
+    past = [
+        p
+        for p in phis
+        if yaw_branch(isometric_copy(demo, p, seed=0, copy_index=0, episode_id="x"), 2.9) is None
+    ]
+    assert past and len(past) < len(phis)
+    with pytest.raises(NotSimulableError, match="wrist"):
+        audit_episode(env, isometric_copy(demo, past[0], seed=0, copy_index=0, episode_id="x"), demo)
+
+
 @pytest.mark.timeout(120)
 def test_cli_prints_one_json_object(capsys):
-    assert main(["--task", "block_pick", "--episodes", "1", "--copies", "1", "--views", "1", "--json"]) == 0
+    argv = [
+        "--task",
+        "block_pick",
+        "--episodes",
+        "1",
+        "--copies",
+        "1",
+        "--isometric",
+        "3",
+        "--views",
+        "1",
+        "--json",
+    ]
+    assert main(argv) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["benchmark"] == "audit" and "MEA only" in out["meta"]["augmentation"]
-    rows = out["results"]["validity of MEA copies per phase"]
-    assert [row["phase"] for row in rows] == ["non_trivial", "trivial", "termination", "all"]
-    assert out["meta"]["tolerance_covers_floor"] is True
+    assert out["benchmark"] == "audit" and "isometric" in out["meta"]["augmentation"]
+    rows = {
+        row["kind"]: row
+        for row in out["results"][
+            "validity per kind (raw demonstrations, isometric, MEA, MEA∘isometric copies)"
+        ]
+    }
+    assert list(rows) == ["raw", "isometric", "mea", "mea+isometric", "all"]
+    assert rows["raw"]["episodes"] == 1 and rows["mea"]["episodes"] == 1
+    assert rows["isometric"]["episodes"] == 3 and rows["mea+isometric"]["episodes"] == 1
+    for kind, row in rows.items():  # every copy is either simulated or reported as not simulable
+        assert row["simulated"] + row["not simulable"] == row["episodes"]
+        assert out["meta"]["valid_pct"][kind] == row["valid %"]
+    assert rows["all"]["transitions"] == sum(
+        rows[k]["transitions"] for k in ("raw", "isometric", "mea", "mea+isometric")
+    )
+    assert rows["raw"]["valid %"] == 100.0 and rows["mea"]["valid %"] >= 90.0
+    phase_rows = out["results"]["validity per kind and phase"]
+    assert [row["phase"] for row in phase_rows if row["kind"] == "mea"] == [
+        "non_trivial",
+        "trivial",
+        "termination",
+        "all",
+    ]
+    assert out["meta"]["tolerance_covers_floor"] is True and out["meta"]["rotated_views"] >= 1

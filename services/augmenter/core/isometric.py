@@ -2,37 +2,87 @@
 
 Rotating every point cloud about the gripper-centric z axis by phi, and the (dx, dy) part of every
 action by the same phi, is the whole episode seen in a world rotated by phi (re-centring on the
-gripper commutes with the rotation). dz, dtheta, the jaw, rewards and flags are unchanged. As in
-the public code, rotated (dx, dy) is clipped to [-1, 1], which shortens large diagonal moves.
+gripper commutes with the rotation). dz, dtheta, the jaw, rewards and flags are unchanged.
+
+Copies are exact, never clipped: the public code clips rotated (dx, dy) to [-1, 1], which shortens
+large diagonal moves, so the stored action no longer produces the stored next observation (up to
+2 cm off). Here ``draw_rotation`` only returns angles for which every rotated (dx, dy) of the
+episode(s) stays inside [-1, 1]: phi uniform in [0, 2 pi), redrawn up to ``ROTATION_DRAWS`` times,
+else a uniformly drawn multiple of 90 degrees (a permutation with signs: always exact, and
+computed with exact cosines and sines). ``rotate_actions`` refuses an angle that would need
+clipping instead of silently changing the action.
+
 Privileged world poses are rotated about the vertical through ``centre`` (the workspace centre);
-a rotated scene can leave the robot's box-shaped workspace, so these copies are for learning, not
-for the physics audit.
+in the gripper-centric observation any vertical axis gives the same copy, so the physics audit
+(``services.augmenter.audit_placement``) picks one that keeps the rotated scene in the workspace.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
 from proto.episode import Augmentation, Episode
 
 WORKSPACE_CENTRE = (0.5, 0.0)
+ROTATION_DRAWS = 32
+"""Uniform angles tried by ``draw_rotation`` before it falls back to a multiple of 90 degrees."""
+QUARTER = math.pi / 2
+
+
+def cos_sin(phi: float) -> tuple[float, float]:
+    """cos and sin of ``phi``, exact (0, +-1) at multiples of 90 degrees, so that those rotations
+    only permute and negate coordinates (``math.cos(pi / 2)`` is 6e-17, not 0)."""
+    k = round(phi / QUARTER)
+    if abs(phi - k * QUARTER) <= 1e-12:
+        return ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))[k % 4]
+    return math.cos(phi), math.sin(phi)
 
 
 def rotate_points(points: np.ndarray, phi: float) -> np.ndarray:
-    c, s = math.cos(phi), math.sin(phi)
+    """x, y of ``points`` (..., >= 2) turned by ``phi`` about the vertical (float64 math, one
+    rounding to float32)."""
+    c, s = cos_sin(phi)
+    p = np.asarray(points, np.float64)
     out = np.array(points, dtype=np.float32, copy=True)
-    out[..., 0] = c * points[..., 0] - s * points[..., 1]
-    out[..., 1] = s * points[..., 0] + c * points[..., 1]
+    out[..., 0] = c * p[..., 0] - s * p[..., 1]
+    out[..., 1] = s * p[..., 0] + c * p[..., 1]
     return out
 
 
+def rotation_fits(actions: np.ndarray, phi: float) -> bool:
+    """Every (dx, dy) of ``actions`` (T, 5) turned by ``phi`` stays inside [-1, 1] as stored."""
+    a = np.asarray(actions)
+    return len(a) == 0 or float(np.abs(rotate_points(a[:, 1:3], phi)).max()) <= 1.0
+
+
 def rotate_actions(actions: np.ndarray, phi: float) -> np.ndarray:
+    """(jaw, dx, dy, dz, dtheta) with (dx, dy) turned by ``phi``; ValueError if any rotated (dx, dy)
+    would leave [-1, 1] (draw the angle with ``draw_rotation``: a copy is never clipped)."""
     out = np.array(actions, dtype=np.float32, copy=True)
     out[:, 1:3] = rotate_points(actions[:, 1:3], phi)
-    return np.clip(out, -1.0, 1.0)
+    if len(out) and float(np.abs(out[:, 1:3]).max()) > 1.0:
+        raise ValueError(
+            f"rotating these actions by {phi!r} rad takes (dx, dy) outside [-1, 1] "
+            f"(max {float(np.abs(out[:, 1:3]).max()):.4f}); a rotated copy must not be clipped"
+        )
+    return out
+
+
+def draw_rotation(
+    rng: np.random.Generator, actions: Sequence[np.ndarray], draws: int = ROTATION_DRAWS
+) -> float:
+    """An angle (rad) under which every (dx, dy) of every array in ``actions`` stays inside [-1, 1]:
+    the first of up to ``draws`` uniform draws in [0, 2 pi) that fits, else a uniformly drawn
+    multiple of 90 degrees (exact for any action in [-1, 1]). Deterministic given ``rng``."""
+    for _ in range(draws):
+        phi = float(rng.uniform(0.0, 2.0 * math.pi))
+        if all(rotation_fits(a, phi) for a in actions):
+            return phi
+    return float(int(rng.integers(4)) * QUARTER)
 
 
 def _rotate_quat_z(quats: np.ndarray, phi: float) -> np.ndarray:
@@ -45,6 +95,7 @@ def _rotate_quat_z(quats: np.ndarray, phi: float) -> np.ndarray:
 def rotate_episode(ep: Episode, phi: float, *, centre: tuple[float, float] = WORKSPACE_CENTRE) -> dict:
     """The arrays of ``ep`` seen in a world rotated by ``phi`` about the vertical."""
     c = np.array([*centre, 0.0], np.float32)
+    actions = rotate_actions(ep.actions, phi)
     pose = np.array(ep.gripper_pose, np.float32, copy=True)
     pose[:, :3] = rotate_points(pose[:, :3] - c, phi) + c
     pose[:, 3] = pose[:, 3] + phi
@@ -53,7 +104,7 @@ def rotate_episode(ep: Episode, phi: float, *, centre: tuple[float, float] = WOR
     objects[..., 3:] = _rotate_quat_z(objects[..., 3:].astype(np.float64), phi)
     return {
         "points": rotate_points(ep.points, phi),
-        "actions": rotate_actions(ep.actions, phi),
+        "actions": actions,
         "gripper_pose": pose,
         "object_poses": objects.astype(np.float32),
     }

@@ -8,6 +8,12 @@ of one episode share a single isometric rotation (G_t x G). Each copy's draws co
 ``np.random.default_rng([seed, copy_index])`` with the seed recorded in its provenance, so any copy
 can be regenerated from its source episode.
 
+Rotation angles (``isometric_angle``, ``shared_rotation``) are drawn by ``isometric.draw_rotation``
+so that no rotated (dx, dy) leaves [-1, 1]: an isometric copy's angle fits the raw episode's
+actions, the shared angle of the MEA copies fits every one of them (else a multiple of 90
+degrees). A rotated copy's actions are then the exact rotation of its source's, never clipped, and
+``params["rotation"]`` with the seed regenerates it.
+
 Observations (``AugmentSettings.observation``)
     ``voxel`` (EquiObs, MEA): every output's images are re-projected from its (rotated) point clouds.
     ``depth`` (the Equi-RSAC baseline, ``equirsac``): the raw episode must carry the rendered depth
@@ -24,7 +30,6 @@ Observations (``AugmentSettings.observation``)
 from __future__ import annotations
 
 import dataclasses
-import math
 import zlib
 from dataclasses import dataclass, field
 
@@ -37,8 +42,8 @@ from services.augmenter.core.depth_image import (
     policy_images,
     rotate_images,
 )
-from services.augmenter.core.isometric import compose_with_mea, isometric_copy
-from services.augmenter.core.mea import MeaSettings, augment
+from services.augmenter.core.isometric import compose_with_mea, draw_rotation, isometric_copy
+from services.augmenter.core.mea import MeaDraw, MeaSettings, augment
 from services.augmenter.core.projection import ProjectionSpec, segment_policy_images
 
 MEA_ON = ("demos", "successes", "all", "none")
@@ -106,6 +111,52 @@ def episode_seed(base: int, episode_id: str) -> int:
     return (zlib.crc32(episode_id.encode()) ^ (base * 0x9E3779B1)) & 0x7FFF_FFFF_FFFF_FFFF
 
 
+SHARED_ROTATION_STREAM = 1_000_000
+"""``default_rng([seed, 1_000_000])`` draws the MEA copies' shared rotation; copy k's MEA draws come
+from ``[seed, 1_000_001 + k]`` and isometric copy k's angle from ``[seed, k]``."""
+
+
+def isometric_angle(seed: int, copy_index: int, actions: np.ndarray) -> float:
+    """The angle of isometric copy ``copy_index``: no rotated (dx, dy) of ``actions`` is clipped."""
+    return draw_rotation(np.random.default_rng([seed, copy_index]), [actions])
+
+
+def shared_rotation(seed: int, copies: list[Episode]) -> float:
+    """The one angle all MEA copies of an episode share (G_t x G), exact for every copy's actions."""
+    return draw_rotation(np.random.default_rng([seed, SHARED_ROTATION_STREAM]), [c.actions for c in copies])
+
+
+def isometric_copies(raw: Episode, count: int, seed: int) -> list[Episode]:
+    """The ``count`` isometric copies of ``raw``, each with its own angle."""
+    return [
+        isometric_copy(
+            raw,
+            isometric_angle(seed, k, raw.actions),
+            seed=seed,
+            copy_index=k,
+            episode_id=f"{raw.episode_id}.iso{k}",
+        )
+        for k in range(count)
+    ]
+
+
+def mea_copies(
+    raw: Episode, settings: MeaSettings, count: int, seed: int
+) -> list[tuple[Episode | None, MeaDraw]]:
+    """The ``count`` MEA copies of ``raw`` before any rotation (None where the guards left nothing)."""
+    return [
+        augment(
+            raw,
+            settings,
+            np.random.default_rng([seed, SHARED_ROTATION_STREAM + 1 + k]),
+            seed=seed,
+            copy_index=k,
+            episode_id=f"{raw.episode_id}.mea{k}",
+        )
+        for k in range(count)
+    ]
+
+
 def with_images(ep: Episode, spec: ProjectionSpec) -> Episode:
     """Attach the policy images: voxel projection of all segments + the jaw channel, uint8."""
     # == quantize(observation_channels(project_batch(points, spec, valid), ep.jaw, spec), spec)
@@ -135,9 +186,8 @@ def _augment_depth(raw: Episode, s: AugmentSettings, seed: int) -> list[Episode]
     episode's policy images rotated by the copy's angle (drawn exactly as for voxel)."""
     codes = depth_policy_images(raw)
     out = [dataclasses.replace(raw, images=codes)]
-    for k in range(s.isometric_copies):
-        phi = float(np.random.default_rng([seed, k]).uniform(0, 2 * math.pi))
-        copy = isometric_copy(raw, phi, seed=seed, copy_index=k, episode_id=f"{raw.episode_id}.iso{k}")
+    for copy in isometric_copies(raw, s.isometric_copies, seed):
+        phi = float(copy.augmentation.params["rotation"][0])
         out.append(dataclasses.replace(copy, images=rotate_images(codes, phi)))
     return out
 
@@ -151,24 +201,21 @@ def augment_episode(raw: Episode, s: AugmentSettings) -> tuple[list[Episode], Au
         stats.outputs = len(out)
         stats.transitions = sum(e.num_steps for e in out)
         return out, stats
-    out = [raw]
-    for k in range(s.isometric_copies):
-        phi = float(np.random.default_rng([seed, k]).uniform(0, 2 * math.pi))
-        out.append(isometric_copy(raw, phi, seed=seed, copy_index=k, episode_id=f"{raw.episode_id}.iso{k}"))
+    out = [raw, *isometric_copies(raw, s.isometric_copies, seed)]
     if s.applies_mea(raw):
-        phi = float(np.random.default_rng([seed, 1_000_000]).uniform(0, 2 * math.pi))
-        for k in range(s.mea_copies):
-            rng = np.random.default_rng([seed, 1_000_001 + k])
-            copy, draw = augment(
-                raw, s.mea, rng, seed=seed, copy_index=k, episode_id=f"{raw.episode_id}.mea{k}"
-            )
+        made = []
+        for copy, draw in mea_copies(raw, s.mea, s.mea_copies, seed):
             stats.rejections += draw.rejections
             stats.cuts += int(draw.cut)
             if copy is None:
                 stats.mea_empty += 1
-                continue
-            stats.mea_made += 1
-            out.append(compose_with_mea(copy, phi) if s.isometric_on_mea else copy)
+            else:
+                made.append(copy)
+        stats.mea_made += len(made)
+        if s.isometric_on_mea and made:
+            phi = shared_rotation(seed, made)
+            made = [compose_with_mea(copy, phi) for copy in made]
+        out += made
     if s.reproject:
         out = [with_images(e, s.projection) for e in out]
     stats.outputs = len(out)

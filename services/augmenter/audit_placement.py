@@ -1,0 +1,176 @@
+"""Where the physics audit puts a copy's first state in the simulator, rotated copies included.
+
+Every audited episode starts from ``env.reset(source.seed)``: the source's objects where the
+recording had them and the same hidden movable/fixed choice. An MEA copy keeps those objects and
+only moves the arm (``place``). A rotated copy (``isometric``, ``mea+isometric``) is the same scene
+turned by its angle phi (``params["rotation"]``) about a vertical axis. Its privileged poses are
+turned about the workspace centre, but in the gripper-centric observation a turn about any vertical
+axis is the same copy (the axes differ by a world translation, which the observation does not
+see), so ``plan_placement`` chooses the translation that keeps the turned scene where this robot
+can act:
+
+* the wrist: the yaw the arm is commanded to follow (the first yaw plus the cumulative dtheta) and
+  the recorded yaws, turned by phi, must fit in [-YAW_LIMIT, YAW_LIMIT] on one 2 pi branch, since
+  the controller clips the commanded yaw there and a wrapped branch would be a different motion;
+* the box: every recorded pivot position inside the pivot bounds, every object position inside
+  the workspace (x, y), which bounds the translation to a box;
+* the reach: every recorded pivot pose reachable by the arm; the translations of a grid over the
+  box are tried from its centre outwards.
+
+A copy for which no placement exists is *not simulable* (``NotSimulableError`` with the reason): the
+audit reports those apart, neither valid nor invalid. The scene is then moved rigidly: every body
+but the floor and the arm, as ``env.reset`` left it, gets ``x -> R(phi) x + shift`` and its
+orientation (and velocity) turned by phi about z; joint states (a drawer's opening) are kept.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from proto.episode import Episode
+from services.augmenter.core.isometric import WORKSPACE_CENTRE, cos_sin
+from services.augmenter.core.mea import DELTA_THETA
+
+if TYPE_CHECKING:  # pybullet is imported only where an env exists
+    from services.actor.tasks.env import ManipulationEnv, Observation
+
+SETTLE_STEPS = 10  # physics steps env.reset lets the world rest after placing the arm; mirrored here
+RESAMPLE_SALT = 0x5EED_A0D1  # offsets the replay's point-sampling stream from the recorded one
+GRID = 9  # translations tried per axis of the feasible box
+ROTATED_KINDS = ("isometric", "mea+isometric")
+
+
+class NotSimulableError(Exception):
+    """No placement of the copy exists in this simulator (the reason is the message)."""
+
+
+def rotation_of(ep: Episode) -> float:
+    """The copy's isometric angle (rad): ``params["rotation"]`` of a rotated copy, else 0."""
+    aug = ep.augmentation
+    if aug is None or aug.kind not in ROTATED_KINDS:
+        return 0.0
+    return float(aug.params["rotation"][0])
+
+
+@dataclass(frozen=True)
+class Placement:
+    """The source scene moved rigidly, ``x -> R(phi) x + shift`` about the vertical, and the copy as
+    the simulator will play it (privileged poses translated to match, yaws on the wrist's branch)."""
+
+    phi: float
+    shift: np.ndarray  # (2,) m
+    episode: Episode
+
+    @property
+    def moves_scene(self) -> bool:
+        return self.phi != 0.0 or bool(np.any(self.shift != 0.0))
+
+    def move_scene(self, env: ManipulationEnv) -> None:
+        """Turn and shift every body but the floor and the arm as they are now."""
+        import pybullet as pb
+
+        c, s = cos_sin(self.phi)
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        qz = (0.0, 0.0, math.sin(self.phi / 2), math.cos(self.phi / 2))
+        cid = env.client
+        for i in range(pb.getNumBodies(physicsClientId=cid)):
+            body = pb.getBodyUniqueId(i, physicsClientId=cid)
+            if body in (env.floor, env.robot.body):
+                continue
+            pos, quat = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
+            lin, ang = pb.getBaseVelocity(body, physicsClientId=cid)
+            new_pos = rot @ np.asarray(pos) + np.r_[self.shift, 0.0]
+            _, new_quat = pb.multiplyTransforms((0, 0, 0), qz, (0, 0, 0), quat)
+            pb.resetBasePositionAndOrientation(body, new_pos.tolist(), new_quat, physicsClientId=cid)
+            pb.resetBaseVelocity(body, (rot @ lin).tolist(), (rot @ ang).tolist(), physicsClientId=cid)
+
+
+def yaw_branch(ep: Episode, limit: float) -> float | None:
+    """Multiple of 2 pi that puts the copy's commanded and recorded yaws inside [-limit, limit]."""
+    yaw = np.asarray(ep.gripper_pose[:, 3], np.float64)
+    commanded = yaw[0] + DELTA_THETA * np.r_[0.0, np.cumsum(np.asarray(ep.actions[:, 4], np.float64))]
+    recorded = yaw[0] + np.unwrap(yaw - yaw[0])
+    lo, hi = min(commanded.min(), recorded.min()), max(commanded.max(), recorded.max())
+    k = math.ceil((-limit - lo) / (2 * math.pi))
+    return 2 * math.pi * k if hi + 2 * math.pi * k <= limit else None
+
+
+def plan_placement(env: ManipulationEnv, aug: Episode) -> Placement:
+    """Where ``aug`` goes in ``env`` (see the module docstring); NotSimulableError if nowhere."""
+    phi = rotation_of(aug)
+    if phi == 0.0:
+        return Placement(0.0, np.zeros(2), aug)
+    from services.actor.tasks.robot import WORKSPACE, YAW_LIMIT
+
+    turn = yaw_branch(aug, YAW_LIMIT)
+    if turn is None:
+        raise NotSimulableError("wrist range: the turned yaws do not fit in the wrist's limits")
+    pivots = np.asarray(aug.gripper_pose[:, :3], np.float64)
+    objects = np.asarray(aug.object_poses[..., :2], np.float64).reshape(-1, 2)
+    lo, hi = env.robot.pivot_bounds()
+    low = np.maximum(lo[:2] - pivots[:, :2].min(0), WORKSPACE[:2, 0] - objects.min(0))
+    high = np.minimum(hi[:2] - pivots[:, :2].max(0), WORKSPACE[:2, 1] - objects.max(0))
+    if np.any(low > high + 1e-9):
+        raise NotSimulableError("workspace: the turned scene does not fit in the workspace")
+    high = np.maximum(high, low)
+    centre = (low + high) / 2
+    grid = np.stack(np.meshgrid(*[np.linspace(a, b, GRID) for a, b in zip(low, high, strict=True)]), -1)
+    candidates = sorted(grid.reshape(-1, 2), key=lambda d: float(np.linalg.norm(d - centre)))
+    yaws = np.asarray(aug.gripper_pose[:, 3], np.float64) + turn
+    for delta in [centre, *candidates]:
+        moved = pivots + np.r_[delta, 0.0]
+        if all(
+            np.linalg.norm(env.robot.reachable(p, float(y)) - p) <= 1e-9
+            for p, y in zip(moved, yaws, strict=True)
+        ):
+            return _placement(aug, phi, np.asarray(delta, np.float64), turn)
+    raise NotSimulableError("reach: the arm cannot reach the turned gripper path")
+
+
+def _placement(aug: Episode, phi: float, delta: np.ndarray, turn: float) -> Placement:
+    c, s = cos_sin(phi)
+    centre = np.asarray(WORKSPACE_CENTRE, np.float64)
+    stored_shift = centre - np.array([[c, -s], [s, c]]) @ centre  # the copy's poses: about the centre
+    pose = np.array(aug.gripper_pose, np.float64, copy=True)
+    pose[:, :2] += delta
+    pose[:, 3] += turn
+    objects = np.array(aug.object_poses, np.float64, copy=True)
+    objects[..., :2] += delta
+    placed = dataclasses.replace(
+        aug, gripper_pose=pose.astype(np.float32), object_poses=objects.astype(np.float32)
+    )
+    return Placement(phi, stored_shift + delta, placed)
+
+
+def place(
+    env: ManipulationEnv,
+    seed: int,
+    pose: np.ndarray,
+    jaw: float,
+    resample: bool = True,
+    placement: Placement | None = None,
+) -> Observation:
+    """Reset the task from ``seed``, move the scene as ``placement`` says (if given), and teleport
+    the arm to ``pose`` (pivot x, y, z, yaw) with the jaw at ``jaw``; the world then rests as long
+    as after an ordinary reset.
+
+    ``resample``: draw the observed points from a sampling stream independent of the recorded
+    episode's. ``observe`` seeds its sampler with (env.seed, step), and env.seed serves nothing
+    else once the reset has placed the objects, so replacing it changes only which points are
+    drawn. Without it a replay whose fused clouds are bit-identical to the recording draws the very
+    same points and the Chamfer distance is 0, a floor no augmented copy could share."""
+    env.reset(seed)
+    if resample:
+        env.seed = (int(seed) + RESAMPLE_SALT) % 2**63
+    if placement is not None and placement.moves_scene:
+        placement.move_scene(env)
+    pose = np.asarray(pose, np.float64)
+    env.robot.reset(pose[:3], float(pose[3]), jaw=float(jaw))
+    for _ in range(SETTLE_STEPS):
+        env.step_physics()
+    return env.observe()
