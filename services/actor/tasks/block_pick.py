@@ -8,7 +8,7 @@ import numpy as np
 import pybullet as pb
 
 from services.actor.tasks.env import ManipulationEnv, Task, workspace_xy_margin
-from services.actor.tasks.experts import Follower, nearest_symmetric_yaw
+from services.actor.tasks.experts import Approach, Follower, nearest_symmetric_yaw
 
 HALF = 0.025  # cube half extent (m)
 MOVABLE_MASS = 0.02  # kg
@@ -62,9 +62,14 @@ class BlockPick(Task):
 
 
 class PickExpert:
-    """Go above a cube, align, descend, close, lift. ``probe`` first tries the fixed cube."""
+    """Go above a cube, align, descend, close, lift. ``probe`` first tries the fixed cube.
 
-    TRAVEL = 0.12  # tool-centre height while moving between cubes
+    The first cube is approached at a safe height (``Approach``: pivot at or above L_z + 1 cm) up to
+    the pre-contact pose straight above it, already at the grasp yaw, and the gripper then descends
+    vertically. After a probe the open gripper rises to TRAVEL + 0.05 (pivot above L_z) and moves on
+    to the movable cube at TRAVEL (no need to climb higher: nothing stands in between)."""
+
+    TRAVEL = 0.12  # tool-centre height while moving between cubes (after the first grasp attempt)
     GRASP = (
         0.05  # tool-centre height when closing: closing swings the tips 1.3 cm down, still clear of the floor
     )
@@ -76,6 +81,7 @@ class PickExpert:
         self.plan: list[tuple[int, str]] = []
         for body in targets:
             self.plan += [(body, "above"), (body, "down"), (body, "close"), (body, "lift")]
+        self.approach = Approach(self.follow)
         self.i = 0
         self.wait = 0
         self.grasp_yaw: float | None = None  # frozen at the grasp: never turn a held cube
@@ -92,7 +98,9 @@ class PickExpert:
         else:
             yaw = nearest_symmetric_yaw(cube_yaw, self.env.robot.target_yaw, 4)
             self.grasp_yaw = yaw if phase == "down" else None
-        if phase == "above":
+        if phase == "above" and self.i == 0:  # first cube: safe-height approach
+            a, done = self.approach.act(pos[:2], yaw, jaw=1.0)
+        elif phase == "above":
             a, done = self.follow.action(np.array([pos[0], pos[1], self.TRAVEL]), yaw, jaw=1.0)
         elif phase == "down":
             a, done = self.follow.action(np.array([pos[0], pos[1], self.GRASP]), yaw, jaw=1.0)

@@ -1,10 +1,11 @@
 """Block Pull: two identical flat blocks, one fixed; drag the movable one until the two touch.
 
 Both blocks share an x and lie apart along y; which one is fixed is drawn per episode and is
-invisible (same shape, size and colour). The scripted expert closes the jaw into a paddle, lowers it
-on the far side of a block (the side away from the other block) with the jaw's closing axis across
-the line between the blocks, and drags the block along that line. The ``probe`` style first tries
-this on the fixed block (and so touches it), then lifts and does the same on the movable one.
+invisible (same shape, size and colour). The scripted expert closes the jaw into a paddle, travels
+at a safe height (pivot at or above L_z + 1 cm) to straight above the far side of a block (the side
+away from the other block) with the jaw's closing axis across the line between the blocks, lowers
+it vertically and drags the block along that line. The ``probe`` style first tries this on the
+fixed block (and so touches it), then lifts and does the same on the movable one.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 import pybullet as pb
 
 from services.actor.tasks.env import ManipulationEnv, Task
-from services.actor.tasks.experts import Follower
+from services.actor.tasks.experts import Approach, Follower
 from services.actor.tasks.robot import WORKSPACE
 
 HALF = np.array([0.05, 0.05, 0.025])  # block half extents (m)
@@ -123,11 +124,17 @@ class PullExpert:
     """Close the jaw, travel above the far side of a block, lower the paddle behind it, drag the
     block toward the other one. Every block but the last is dragged at only until the gripper
     touches it (or a few tries), then the paddle lifts and moves on; the last is dragged until
-    the episode ends. ``probe`` = [fixed, movable], ``direct`` = [movable]."""
+    the episode ends. ``probe`` = [fixed, movable], ``direct`` = [movable].
 
-    TRAVEL = 0.12  # tool-centre height while travelling (closed tips 7.5 cm up, blocks 5 cm tall)
+    The first block is approached at a safe height (``Approach``: pivot at or above L_z + 1 cm) up
+    to the pre-contact pose straight above its far side, already at the drag yaw; the paddle then
+    descends vertically. Between blocks it lifts to TRAVEL only (the blocks are 5 cm tall)."""
+
+    TRAVEL = 0.12  # tool-centre height between blocks (closed tips 7.5 cm up, blocks 5 cm tall)
     PUSH_Z = 0.056  # tool-centre height while dragging: closed tips about 1 cm above the floor
     PUSH_STEP = 0.04  # drag per step (m)
+    PROBE_STEP = CLEARANCE + 0.004  # a probe's push: 4 mm past touching (pressing a static block
+    # harder only forces the paddle open by an amount that depends on the arm's configuration)
     PROBE_PUSHES = 3  # most drag attempts at a probed block before moving on
 
     def __init__(self, env: ManipulationEnv, task: BlockPull, targets: list[int]) -> None:
@@ -138,6 +145,7 @@ class PullExpert:
             self.plan += [(body, "travel"), (body, "lower"), (body, "drag")]
             if k < len(targets) - 1:
                 self.plan.append((body, "lift"))
+        self.approach = Approach(self.follow)
         self.i = 0
         self.pushes = 0
 
@@ -163,13 +171,16 @@ class PullExpert:
         goal_xy, out = self._far_side(body)
         tip = self.env.robot.tcp()
         done = False
-        if phase == "travel":
+        if phase == "travel" and self.i == 0:  # first block: safe-height approach
+            a, done = self.approach.act(goal_xy, PUSH_YAW, jaw=0.0)
+        elif phase == "travel":
             a, done = self.follow.action(np.array([*goal_xy, self.TRAVEL]), PUSH_YAW, jaw=0.0)
         elif phase == "lower":
             a, done = self.follow.action(np.array([*goal_xy, self.PUSH_Z]), PUSH_YAW, jaw=0.0)
         elif phase == "drag":
             x = self._pose(body)[0][0]  # stay centred on the block as it slides
-            goal = np.array([x, tip[1] - out * self.PUSH_STEP, self.PUSH_Z])
+            step = self.PROBE_STEP if probing else self.PUSH_STEP
+            goal = np.array([x, tip[1] - out * step, self.PUSH_Z])
             a, _ = self.follow.action(goal, PUSH_YAW, jaw=0.0)
             self.pushes += 1
         else:  # lift straight up before travelling to the next block

@@ -16,7 +16,7 @@ import pybullet as pb
 
 from services.actor.tasks import drawer_model as dm
 from services.actor.tasks.env import ManipulationEnv, Task
-from services.actor.tasks.experts import Follower, nearest_symmetric_yaw
+from services.actor.tasks.experts import Approach, Follower, nearest_symmetric_yaw
 from services.actor.tasks.robot import YAW_LIMIT
 
 SPACING = 0.12  # m between the two cabinets' centres, along their local y
@@ -103,7 +103,9 @@ class DrawerExpert:
     """Above the handle, descend, close across the stem, pull along the drawer axis.
 
     ``probe`` first grasps the locked drawer's handle and tugs it, releases and rises, then opens
-    the unlocked one."""
+    the unlocked one. The first handle is approached at a safe height (``Approach``: pivot at or
+    above L_z + 1 cm) up to the pre-contact pose straight above it, already at the grasp yaw; the
+    gripper then descends vertically. Between the handles it travels at TRAVEL (pivot above L_z)."""
 
     TRAVEL = 0.13  # tool-centre height between handles: open tips 3 cm above the cabinets' tops
     GRASP = 0.055  # tool-centre height when closing: the 1.3 cm tip swing stays clear of the floor
@@ -117,6 +119,7 @@ class DrawerExpert:
         if style == "probe":
             self.plan += [(task.locked, p) for p in ("above", "down", "close", "tug", "release", "rise")]
         self.plan += [(task.unlocked, p) for p in ("above", "down", "close", "pull")]
+        self.approach = Approach(self.follow)
         self.i = 0
         self.wait = 0
         self.grasp_yaw: float | None = None  # frozen at the descent: never turn while holding
@@ -138,8 +141,11 @@ class DrawerExpert:
         if phase in ("above", "down"):
             yaw = self._yaw(body)
             self.grasp_yaw = yaw
-            height = self.TRAVEL if phase == "above" else self.GRASP
-            a, done = self.follow.action(self.task.grasp_point(body, height), yaw, jaw=1.0)
+            if phase == "above" and self.i == 0:  # first handle: safe-height approach
+                a, done = self.approach.act(self.task.grasp_point(body, 0.0)[:2], yaw, jaw=1.0)
+            else:
+                height = self.TRAVEL if phase == "above" else self.GRASP
+                a, done = self.follow.action(self.task.grasp_point(body, height), yaw, jaw=1.0)
         elif phase == "close":  # hold still while the fingers close
             a, _ = self.follow.action(robot.tcp(), self.grasp_yaw, jaw=0.0)
             self.grasp_tip = robot.tcp()

@@ -3,6 +3,12 @@
 Each step moves the commanded gripper toward the current goal, deltas clipped to one action's
 reach, so expert actions are ordinary normalised actions. Goals are stated for the tool centre
 point (between the finger tips), which is what grasping cares about.
+
+Every expert opens with an approach like the public task suites' planners: rise above L_z if the
+gripper starts below it, travel horizontally at a safe height (pivot at or above L_z + 1 cm, as
+high as the start and the arm's reach allow) to a pre-contact pose directly above the target, turned
+to the grasp/drag yaw on the way, and only then descend straight down. MEA augments only steps made
+above L_z (its non-trivial phase), so this approach is what it has to work with.
 """
 
 from __future__ import annotations
@@ -12,6 +18,10 @@ import math
 import numpy as np
 
 from services.actor.tasks.robot import DELTA_THETA, DELTA_XYZ, wrap
+
+LZ = 0.27  # MEA's L_z (MeaSettings.lz): pivot height at or above which no object can be touched
+SAFE_Z = LZ + 0.01  # lowest pivot height of the approach's travel (1 cm margin over L_z)
+HEIGHT_STEP = 0.005  # m: the travel height is lowered in these steps until the arm reaches the goal
 
 
 def nearest_symmetric_yaw(object_yaw: float, current: float, order: int) -> float:
@@ -27,20 +37,76 @@ class Follower:
     def __init__(self, env) -> None:
         self.env = env
 
-    def action(
-        self, tip_goal: np.ndarray, yaw_goal: float, jaw: float, tol: float = 1e-3
-    ) -> tuple[np.ndarray, bool]:
-        """Action toward the goal, and whether the goal is reached after it."""
+    def pivot_goal(self, tip_goal: np.ndarray, yaw_goal: float) -> np.ndarray:
+        """Pivot position that puts the tool centre at ``tip_goal`` once turned to ``yaw_goal``."""
         r = self.env.robot
-        pivot, yaw = r.pivot()
+        pivot, _ = r.pivot()
         offset = pivot - r.tcp()  # pivot relative to the tool centre, at the current yaw
         turn = wrap(yaw_goal - r.target_yaw)
         c, s = math.cos(turn), math.sin(turn)
         offset = np.array([c * offset[0] - s * offset[1], s * offset[0] + c * offset[1], offset[2]])
-        delta = (np.asarray(tip_goal) + offset) - r.target_pos
+        return np.asarray(tip_goal, dtype=float) + offset
+
+    def action(
+        self,
+        tip_goal: np.ndarray,
+        yaw_goal: float,
+        jaw: float,
+        tol: float = 1e-3,
+        pivot_z: float | None = None,
+    ) -> tuple[np.ndarray, bool]:
+        """Action toward the goal, and whether the goal is reached after it. ``pivot_z``, when
+        given, replaces the goal's height by a height of the pivot (the approach's travel)."""
+        goal = self.pivot_goal(tip_goal, yaw_goal)
+        if pivot_z is not None:
+            goal[2] = pivot_z
+        return self.pivot_action(goal, yaw_goal, jaw, tol)
+
+    def pivot_action(
+        self, pivot_goal: np.ndarray, yaw_goal: float, jaw: float, tol: float = 1e-3
+    ) -> tuple[np.ndarray, bool]:
+        """Action moving the commanded pivot toward ``pivot_goal``, and whether it is reached after it."""
+        r = self.env.robot
+        turn = wrap(yaw_goal - r.target_yaw)
+        delta = np.asarray(pivot_goal, dtype=float) - r.target_pos
         a = np.zeros(5)
         a[0] = 2.0 * jaw - 1.0
         a[1:4] = np.clip(delta / DELTA_XYZ, -1.0, 1.0)
         a[4] = np.clip(turn / DELTA_THETA, -1.0, 1.0)
         reached = bool(np.all(np.abs(delta) <= DELTA_XYZ + tol) and abs(turn) <= DELTA_THETA + 1e-6)
         return a, reached
+
+
+class Approach:
+    """The opening of every expert: rise straight up if the pivot is below SAFE_Z, then travel at a
+    constant height to the pre-contact pose above the target (tool centre above ``tip_xy``, gripper
+    at ``yaw``). The travel height is chosen once: the commanded height, at least SAFE_Z, lowered
+    (not below SAFE_Z) until the arm reaches the pre-contact pose without clipping."""
+
+    def __init__(self, follower: Follower) -> None:
+        self.follow = follower
+        self.height: float | None = None
+
+    def travel_height(self, tip_xy: np.ndarray, yaw: float) -> float:
+        r = self.follow.env.robot
+        low, high = r.pivot_bounds()
+        h = min(max(float(r.target_pos[2]), SAFE_Z), float(high[2]))
+        while h - HEIGHT_STEP >= SAFE_Z:
+            goal = self.follow.pivot_goal(np.array([tip_xy[0], tip_xy[1], 0.0]), yaw)
+            goal[2] = h
+            inside = np.all(goal >= low) and np.all(goal <= high)
+            if inside and np.allclose(r.reachable(goal, yaw), goal, atol=1e-9, rtol=0.0):
+                break
+            h -= HEIGHT_STEP
+        return h
+
+    def act(self, tip_xy: np.ndarray, yaw: float, jaw: float) -> tuple[np.ndarray, bool]:
+        """Action toward the pre-contact pose, and whether it is reached after it."""
+        r = self.follow.env.robot
+        if self.height is None:
+            self.height = self.travel_height(tip_xy, yaw)
+        if r.target_pos[2] < SAFE_Z - 1e-9:  # below L_z: rise in place before moving sideways
+            goal = np.array([r.target_pos[0], r.target_pos[1], self.height])
+            a, _ = self.follow.pivot_action(goal, r.target_yaw, jaw)
+            return a, False
+        return self.follow.action(np.array([tip_xy[0], tip_xy[1], 0.0]), yaw, jaw, pivot_z=self.height)
