@@ -51,7 +51,7 @@ def losses_and_grads(actor, critic, target, batch: Batch, noise: torch.Tensor) -
     policy = policy_outputs(actor, batch, noise[:, :L1])
     y = critic_targets(target, batch, policy, 0.1, 0.9)
     q_loss, feats, _ = critic_loss(critic, batch, y)
-    pi_loss = actor_loss(critic, feats, batch, policy, 0.1) + bc_loss(policy, batch)
+    pi_loss = actor_loss(critic, feats, batch, policy, 0.1) + bc_loss(policy.mean, batch)
     params = list(critic.parameters()) + list(actor.parameters())
     grads = torch.autograd.grad(q_loss + pi_loss, params, allow_unused=True)
     return [q_loss.detach(), pi_loss.detach()], [
@@ -98,9 +98,9 @@ def test_bc_loss_is_the_squared_error_on_demo_transitions_only():
             expected += float((torch.tanh(policy.mean[b, :n]) - batch.actions[b, :n]).pow(2).sum())
             count += n
     assert count > 0
-    torch.testing.assert_close(bc_loss(policy, batch), torch.tensor(expected / count))
+    torch.testing.assert_close(bc_loss(policy.mean, batch), torch.tensor(expected / count))
     no_demo = dataclasses.replace(batch, demo=torch.zeros(4))
-    assert float(bc_loss(policy, no_demo)) == 0.0
+    assert float(bc_loss(policy.mean, no_demo)) == 0.0
 
 
 def test_bc_weight_pulls_the_policy_mean_to_the_demo_actions():
@@ -110,18 +110,18 @@ def test_bc_weight_pulls_the_policy_mean_to_the_demo_actions():
         actor, critic, _ = nets()
         sac = RecurrentSAC(actor, critic, SacSettings(bc_weight=weight, lr=3e-3, share_encoder=True))
         with torch.no_grad():
-            before = float(bc_loss(policy_outputs(sac.actor, batch), batch))
+            before = float(bc_loss(policy_outputs(sac.actor, batch).mean, batch))
         for _ in range(80):
             sac.update(batch)
         with torch.no_grad():
-            return before, float(bc_loss(policy_outputs(sac.actor, batch), batch))
+            return before, float(bc_loss(policy_outputs(sac.actor, batch).mean, batch))
 
     before, with_bc = bc_after(10.0)
     _, without = bc_after(0.0)
     assert with_bc < 0.5 * before and with_bc < 0.5 * without, (before, with_bc, without)
 
 
-def test_shared_encoder_is_trained_by_the_critic_only():
+def test_shared_encoder_is_trained_by_the_critic_and_bc_never_by_the_sac_actor_loss():
     actor, critic, _ = nets()
     sac = RecurrentSAC(actor, critic, SacSettings(share_encoder=True))
     assert sac.actor.encoder is sac.critic.encoder
@@ -132,7 +132,7 @@ def test_shared_encoder_is_trained_by_the_critic_only():
     batch = to_batch(replay_with([4, 6], demos=1).sample(3, np.random.default_rng(6)))
     feats, _ = sac.critic.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
     policy = policy_outputs(sac.actor, batch, embedding=feats[..., -NET.image_embed :].detach())
-    pi_loss = actor_loss(sac.critic, feats, batch, policy, 0.1) + bc_loss(policy, batch)
+    pi_loss = actor_loss(sac.critic, feats, batch, policy, 0.1)
     grads = torch.autograd.grad(pi_loss, list(sac.critic.encoder.parameters()), allow_unused=True)
     assert all(g is None for g in grads)
     enc_before = [p.clone() for p in sac.critic.encoder.parameters()]
@@ -142,24 +142,42 @@ def test_shared_encoder_is_trained_by_the_critic_only():
     )
 
 
+def test_bc_term_trains_the_shared_encoder():
+    """Without it the actor of a sparse-reward task would depend on features only the critic shapes."""
+    batch = to_batch(replay_with([4, 6], demos=1).sample(4, np.random.default_rng(8), demo_fraction=0.5))
+
+    def encoder_change(bc_weight: float) -> float:
+        actor, critic, _ = nets()
+        sac = RecurrentSAC(actor, critic, SacSettings(share_encoder=True, bc_weight=bc_weight))
+        sac.critic_opt = torch.optim.SGD(sac._critic_params, lr=1.0)  # the step is the gradient itself
+        before = [p.clone() for p in sac.critic.encoder.parameters()]
+        sac.update(batch)
+        return sum(
+            float((p - b).abs().sum()) for p, b in zip(sac.critic.encoder.parameters(), before, strict=True)
+        )
+
+    assert abs(encoder_change(100.0) - encoder_change(0.0)) > 1e-3 * max(encoder_change(0.0), 1e-6)
+
+
 def test_shared_encoder_update_equals_separate_passes_on_the_same_weights():
-    """With the actor's encoder set to the critic's, computing the embedding once is the same update."""
+    """With the actor's encoder set to the critic's and no BC, computing the embedding once is the
+    same update as running it for each."""
     batch = to_batch(replay_with([4, 6, 3], demos=1).sample(3, np.random.default_rng(7)))
     torch.manual_seed(9)
     a1, c1, _ = nets()
-    shared = RecurrentSAC(a1, c1, SacSettings(share_encoder=True, bc_weight=0.5))
+    shared = RecurrentSAC(a1, c1, SacSettings(share_encoder=True))
     a2, c2 = build_actor(NET), build_critic(NET)
     a2.load_state_dict(a1.state_dict())
     c2.load_state_dict(c1.state_dict())
     a2.encoder = c2.encoder
-    plain = RecurrentSAC(a2, c2, SacSettings(share_encoder=False, bc_weight=0.5))
+    plain = RecurrentSAC(a2, c2, SacSettings(share_encoder=False))
     plain._actor_params = [p for p in a2.parameters() if all(p is not q for q in c2.encoder.parameters())]
     plain.actor_opt = torch.optim.Adam(plain._actor_params, lr=plain.s.lr)
     torch.manual_seed(11)
     i1 = shared.update(batch)
     torch.manual_seed(11)
     i2 = plain.update(batch)
-    for k in ("critic_loss", "actor_loss", "bc_loss"):
+    for k in ("critic_loss", "actor_loss"):
         assert i1[k] == pytest.approx(i2[k], rel=1e-5, abs=1e-6), k
     for p, q in zip(shared.actor.parameters(), plain.actor.parameters(), strict=True):
         torch.testing.assert_close(p, q, atol=1e-6, rtol=1e-5)

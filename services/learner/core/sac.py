@@ -23,8 +23,9 @@ Speed choices (each saves one pass of an image encoder over B x (L+1) images per
 Options (``SacSettings``, all off in the paper's recipe): ``bc_weight`` adds
     L_bc = sum_t mask_t demo_b |tanh(mean_t) - a_t|^2 / sum_t mask_t demo_b
 to the actor loss (TD3+BC-style cloning of the demonstrations and their augmented copies), and
-``share_encoder`` lets the actor read the critic's image embedding, detached (SAC-AE / DrQ), so an
-update runs the encoder once with gradients (critic) and once without (target critic).
+``share_encoder`` lets the actor read the critic's image embedding (SAC-AE / DrQ), so an update runs
+the encoder once with gradients and once without (target critic). The SAC actor loss sees the
+embedding detached; the BC term, when on, trains the shared encoder together with the critic loss.
 
 ``RecurrentSAC`` wires the losses into one update (critic, actor, alpha, soft target update).
 """
@@ -189,12 +190,13 @@ def actor_loss(
     return masked_mean(alpha * policy.log_probs[:, :-1] - torch.min(q1, q2), batch.mask)
 
 
-def bc_loss(policy: PolicyOutputs, batch: Batch) -> Tensor:
-    """Squared error between tanh(mean) and the recorded action, summed over action dims, averaged
-    over the demonstration transitions of the batch (0 when it holds none)."""
+def bc_loss(mean: Tensor, batch: Batch) -> Tensor:
+    """Squared error between tanh(mean) ((B, L+1, 5), the policy's pre-tanh mean) and the recorded
+    action, summed over action dims, averaged over the demonstration transitions of the batch (0 when
+    it holds none)."""
     if batch.demo is None:
-        return policy.mean.new_zeros(())
-    err = (torch.tanh(policy.mean[:, :-1]) - batch.actions).pow(2).sum(-1)
+        return mean.new_zeros(())
+    err = (torch.tanh(mean[:, :-1]) - batch.actions).pow(2).sum(-1)
     return masked_mean(err, batch.mask * batch.demo[:, None])
 
 
@@ -214,11 +216,15 @@ def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
                 t.copy_(s)
 
 
-def _step(opt: torch.optim.Optimizer, loss: Tensor, params: list[Tensor], retain_graph: bool = False) -> None:
-    """Gradients of ``loss`` for ``params`` only (others untouched), then one optimiser step."""
-    grads = torch.autograd.grad(loss, params, retain_graph=retain_graph, allow_unused=True)
-    for p, g in zip(params, grads, strict=True):
-        p.grad = g
+def _step(
+    opt: torch.optim.Optimizer, loss: Tensor, params: list[Tensor], extra: tuple[Tensor | None, ...] = ()
+) -> None:
+    """Gradients of ``loss`` for ``params`` only (others untouched), plus ``extra`` gradients of the
+    same parameters computed earlier, then one optimiser step."""
+    grads = torch.autograd.grad(loss, params, allow_unused=True)
+    for i, (p, g) in enumerate(zip(params, grads, strict=True)):
+        e = extra[i] if extra else None
+        p.grad = e if g is None else (g if e is None else g + e)
     opt.step()
 
 
@@ -250,24 +256,34 @@ class RecurrentSAC:
         return self.log_alpha.detach().exp()
 
     def update(self, batch: Batch) -> dict[str, float]:
-        alpha = self.alpha
-        feats, embedding = None, None
+        alpha, w = self.alpha, self.s.bc_weight
+        feats = embedding = None
         if self.s.share_encoder:
             feats, _ = self.critic.features(
                 batch.images, batch.prev_actions, **_optional(obs_mask=batch.obs_mask)
             )
-            embedding = feats[..., -self.critic.cfg.image_embed :].detach()
-        policy = policy_outputs(self.actor, batch, embedding=embedding)
+            embedding = feats[..., -self.critic.cfg.image_embed :]
+        policy = policy_outputs(
+            self.actor, batch, embedding=None if embedding is None else embedding.detach()
+        )
         targets = critic_targets(self.critic_target, batch, policy, alpha, self.s.gamma)
         q_loss, feats, info = critic_loss(self.critic, batch, targets, feats)
-        _step(self.critic_opt, q_loss, self._critic_params)
+        critic_objective, b_loss, actor_bc_grads = q_loss, None, ()
+        if w > 0 and embedding is None:
+            b_loss = bc_loss(policy.mean, batch)
+        elif w > 0:
+            # shared encoder: the BC term trains it beside the critic (a sparse-reward critic alone
+            # shapes it too slowly for the actor to tell situations apart); the SAC actor loss does not
+            mean, _, _ = self.actor(batch.images, batch.prev_actions, embedding=embedding)
+            b_loss = bc_loss(mean, batch)
+            critic_objective = q_loss + w * b_loss
+            actor_bc_grads = torch.autograd.grad(
+                w * b_loss, self._actor_params, retain_graph=True, allow_unused=True
+            )
+        _step(self.critic_opt, critic_objective, self._critic_params)
         pi_loss = actor_loss(self.critic, feats, batch, policy, alpha)
-        b_loss = bc_loss(policy, batch) if self.s.bc_weight > 0 else None
-        _step(
-            self.actor_opt,
-            pi_loss if b_loss is None else pi_loss + self.s.bc_weight * b_loss,
-            self._actor_params,
-        )
+        pi_objective = pi_loss + w * b_loss if b_loss is not None and not actor_bc_grads else pi_loss
+        _step(self.actor_opt, pi_objective, self._actor_params, actor_bc_grads)
         log_probs = policy.log_probs[:, :-1]
         a_loss = alpha_loss(self.log_alpha, log_probs, batch.mask, self.s.target_entropy)
         if self.s.autotune_alpha:
