@@ -71,9 +71,18 @@ class Follower:
         delta = np.asarray(pivot_goal, dtype=float) - r.target_pos
         a = np.zeros(5)
         a[0] = 2.0 * jaw - 1.0
-        a[1:4] = np.clip(delta / DELTA_XYZ, -1.0, 1.0)
+        # (dx, dy) limited by its norm, not per axis: a step no longer than one action's reach in any
+        # horizontal direction stays inside [-1, 1] under every rotation, so the isometric copies of
+        # a demonstration may take any angle (a saturated diagonal step only admits multiples of 90)
+        v = delta / DELTA_XYZ
+        a[1:3] = v[:2] / max(1.0, float(np.hypot(v[0], v[1])))
+        a[3] = np.clip(v[2], -1.0, 1.0)
         a[4] = np.clip(turn / DELTA_THETA, -1.0, 1.0)
-        reached = bool(np.all(np.abs(delta) <= DELTA_XYZ + tol) and abs(turn) <= DELTA_THETA + 1e-6)
+        reached = bool(
+            np.hypot(delta[0], delta[1]) <= DELTA_XYZ + tol
+            and abs(delta[2]) <= DELTA_XYZ + tol
+            and abs(turn) <= DELTA_THETA + 1e-6
+        )
         return a, reached
 
 
