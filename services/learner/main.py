@@ -156,7 +156,7 @@ PRESETS = {
     # half of every batch from the demonstration set (demos, their copies, online successes), a BC
     # term, alpha from 0.01, LayerNorm in the Q MLPs, one encoder shared by actor and critic.
     "cpu-small": LearnerConfig(
-        net=dataclasses.replace(NET_PRESETS["cpu-small"], critic_layer_norm=True),
+        net=dataclasses.replace(NET_PRESETS["cpu-small"], critic_layer_norm=True, actor_prev_action=False),
         sac=SacSettings(init_alpha=0.01, bc_weight=0.5, share_encoder=True),
         demo_fraction=0.5,
         successes_as_demos=True,

@@ -231,3 +231,25 @@ def test_critic_with_layer_norm_keeps_q_invariant(group):
 def test_bad_settings_are_refused():
     with pytest.raises(ValueError, match="bc_weight"):
         SacSettings(bc_weight=-1.0)
+
+
+@torch.no_grad()
+def test_actor_without_previous_action_ignores_it_and_stays_equivariant():
+    net = dataclasses.replace(NET, actor_prev_action=False)
+    torch.manual_seed(3)
+    actor = build_actor(net)
+    gen = torch.Generator().manual_seed(4)
+    images = torch.rand(2, 5, 2, SIZE, SIZE, generator=gen)
+    prev = torch.rand(2, 5, 5, generator=gen) * 2 - 1
+    mean, log_std, _ = actor(images, prev)
+    mean0, log_std0, _ = actor(images, torch.zeros_like(prev))
+    torch.testing.assert_close(mean, mean0)
+    torch.testing.assert_close(log_std, log_std0)
+    G = get_group("c4")
+    for g in G.elements:
+        mean_g, _, _ = actor(transform_images(images, g), transform_actions(prev, g))
+        torch.testing.assert_close(mean_g, transform_actions(mean, g), atol=1e-4, rtol=1e-5)
+    # the default (Equi-RSAC) actor does read a_{t-1}: the check above can fail
+    torch.manual_seed(3)
+    with_prev = build_actor(NET)
+    assert not torch.allclose(with_prev(images, prev)[0], with_prev(images, torch.zeros_like(prev))[0])

@@ -75,6 +75,10 @@ class NetConfig:
     """Channels of h and c."""
     mlp_hidden: tuple[int, ...] = (128, 128)
     """Hidden channels of the actor and Q MLPs."""
+    actor_prev_action: bool = True
+    """Feed the previous action a_{t-1} to the actor's LSTM (Equi-RSAC). Off: the actor reads its
+    observations only; an actor trained to imitate smooth demonstrations otherwise learns to repeat
+    a_{t-1} (the copycat shortcut) and stalls on its own rollouts."""
     critic_layer_norm: bool = False
     """LayerNorm after each hidden linear layer of the Q MLPs (RLPD: bounds Q on actions the data
     never shows; per-field affine in the equivariant nets). Off in the paper's networks."""
@@ -359,6 +363,8 @@ class Actor(_Recurrent):
     ) -> tuple[Tensor, Tensor, LSTMState]:
         """images (B, T, C, H, W), prev_actions (B, T, 5) -> mean (B, T, 5) (pre-tanh), log_std
         (B, T, 5) in [-20, 2], final (h, c). ``embedding``, ``obs_mask``: see ``recurrent``."""
+        if not self.cfg.actor_prev_action:
+            prev_actions = torch.zeros_like(prev_actions)  # invariant under every g: still equivariant
         h, emb, state = self.recurrent(images, prev_actions, state, embedding, obs_mask)
         z = self.mlp(torch.cat([h, emb], dim=-1))
         log_std = self.log_std_head(z).clamp(LOG_STD_MIN, LOG_STD_MAX)
