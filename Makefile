@@ -15,7 +15,7 @@ install: $(STAMP)
 
 # Full local stack with embedded defaults (Zenoh router inside the launcher; nothing external).
 run: $(STAMP)
-	$(VENV)/bin/mea run --task block_pull --demos 2 $(ARGS)
+	$(VENV)/bin/mea run --task block_pull --demos 2 --env-steps 20000 $(ARGS)
 
 # Lint, architecture contracts, then the whole test suite.
 test: $(STAMP) lint
