@@ -150,7 +150,7 @@ class LearnerConfig:
 
 PRESETS = {
     "paper": LearnerConfig(),
-    # cpu-small: the recipe that learns on two CPU cores within the budget (README, "Presets"). Cuts:
+    # cpu-small: the recipe for two CPU cores and a 20K env-step budget (README, "Presets"). Cuts:
     # halved network widths, 8 episodes per batch instead of 32, 0.5 updates per env step instead of
     # 1 (the replay gate lets actors run 2 steps per update); replay 50k. Additions, each a field:
     # half of every batch from the demonstration set (demos, their copies, online successes), a BC
