@@ -28,7 +28,7 @@ BENCHES: dict[str, tuple[str, str, str]] = {
     "learning": (
         "services.bench.learning",
         "LearningBenchConfig",
-        "train EquiRSAC / EquiObs / MEA variants: success at budget, improvement timestep, curves",
+        "train EquiRSAC / EquiObs / MEA variants: success at budget, improvement timestep, AUC, wall time, curves",
     ),
     "system": (
         "services.bench.system",
