@@ -20,9 +20,13 @@ class _Trunk(nn.Module):
         self.rnn = nn.GRU(hidden + A, hidden, batch_first=True)
 
     def forward(
-        self, images: Tensor, prev_actions: Tensor, state: Tensor | None = None
+        self,
+        images: Tensor,
+        prev_actions: Tensor,
+        state: Tensor | None = None,
+        embedding: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
-        e = torch.tanh(self.embed(images.flatten(2)))
+        e = torch.tanh(self.embed(images.flatten(2))) if embedding is None else embedding
         h, state = self.rnn(torch.cat([e, prev_actions], -1), state)
         return torch.cat([h, e], -1), state
 
@@ -33,8 +37,11 @@ class TinyActor(nn.Module):
         self.trunk = _Trunk(image_numel, hidden)
         self.head = nn.Linear(2 * hidden, 2 * A)
 
-    def forward(self, images: Tensor, prev_actions: Tensor, state: Tensor | None = None):
-        f, state = self.trunk(images, prev_actions, state)
+    def forward(
+        self, images: Tensor, prev_actions: Tensor, state: Tensor | None = None, embedding=None, obs_mask=None
+    ):
+        """``obs_mask`` is accepted and ignored: this trunk is cheap on padding, which cannot leak back."""
+        f, state = self.trunk(images, prev_actions, state, embedding)
         mean, log_std = self.head(f).chunk(2, -1)
         return mean, log_std.clamp(-20.0, 2.0), state
 
@@ -46,7 +53,7 @@ class TinyCritic(nn.Module):
         self.q1 = nn.Sequential(nn.Linear(2 * hidden + A, hidden), nn.ReLU(), nn.Linear(hidden, 1))
         self.q2 = nn.Sequential(nn.Linear(2 * hidden + A, hidden), nn.ReLU(), nn.Linear(hidden, 1))
 
-    def features(self, images: Tensor, prev_actions: Tensor, state: Tensor | None = None):
+    def features(self, images: Tensor, prev_actions: Tensor, state: Tensor | None = None, obs_mask=None):
         return self.trunk(images, prev_actions, state)
 
     def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:

@@ -99,7 +99,7 @@ class ConstCritic(nn.Module):
         super().__init__()
         self.q1v, self.q2v = q1, q2
 
-    def features(self, images, prev_actions, state=None):
+    def features(self, images, prev_actions, state=None, obs_mask=None):
         B, T = images.shape[:2]
         return torch.arange(T, dtype=torch.float32).expand(B, T)[..., None], None
 

@@ -141,17 +141,10 @@ class PolicyOutputs:
     log_std: Tensor
 
 
-def _optional(**kwargs: Tensor | None) -> dict[str, Tensor]:
-    """Keyword arguments that are set (networks without an encoder, e.g. test doubles, take none)."""
-    return {k: v for k, v in kwargs.items() if v is not None}
-
-
 def policy_outputs(
     actor: nn.Module, batch: Batch, noise: Tensor | None = None, embedding: Tensor | None = None
 ) -> PolicyOutputs:
-    mean, log_std, _ = actor(
-        batch.images, batch.prev_actions, **_optional(embedding=embedding, obs_mask=batch.obs_mask)
-    )
+    mean, log_std, _ = actor(batch.images, batch.prev_actions, embedding=embedding, obs_mask=batch.obs_mask)
     actions, log_probs = tanh_gaussian_sample(mean, log_std, noise)
     return PolicyOutputs(actions, log_probs, mean, log_std)
 
@@ -161,9 +154,7 @@ def critic_targets(
 ) -> Tensor:
     """y_t (B, L), without gradient."""
     with torch.no_grad():
-        feats, _ = critic_target.features(
-            batch.images, batch.prev_actions, **_optional(obs_mask=batch.obs_mask)
-        )
+        feats, _ = critic_target.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
         q1, q2 = critic_target.q(feats[:, 1:], policy.actions[:, 1:].detach())
         soft_v = torch.min(q1, q2) - alpha * policy.log_probs[:, 1:].detach()
         return batch.rewards + gamma * (1.0 - batch.terminated) * soft_v
@@ -175,7 +166,7 @@ def critic_loss(
     """Twin-Q regression onto ``targets``. Returns (loss, features of all L+1 steps, info).
     ``feats``: the critic's features of this batch if already computed (with gradients)."""
     if feats is None:
-        feats, _ = critic.features(batch.images, batch.prev_actions, **_optional(obs_mask=batch.obs_mask))
+        feats, _ = critic.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
     q1, q2 = critic.q(feats[:, :-1], batch.actions)
     loss = masked_mean((q1 - targets).pow(2), batch.mask) + masked_mean((q2 - targets).pow(2), batch.mask)
     info = {"q1": masked_mean(q1.detach(), batch.mask), "q2": masked_mean(q2.detach(), batch.mask)}
@@ -259,9 +250,7 @@ class RecurrentSAC:
         alpha, w = self.alpha, self.s.bc_weight
         feats = embedding = None
         if self.s.share_encoder:
-            feats, _ = self.critic.features(
-                batch.images, batch.prev_actions, **_optional(obs_mask=batch.obs_mask)
-            )
+            feats, _ = self.critic.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
             embedding = feats[..., -self.critic.cfg.image_embed :]
         policy = policy_outputs(
             self.actor, batch, embedding=None if embedding is None else embedding.detach()
