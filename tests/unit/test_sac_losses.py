@@ -16,10 +16,13 @@ from services.learner.core.sac import (
     SacSettings,
     actor_loss,
     alpha_loss,
+    bounded_targets,
     critic_loss,
     critic_targets,
     masked_mean,
+    n_step_targets,
     policy_outputs,
+    returns_to_go,
     soft_update,
     tanh_gaussian_sample,
 )
@@ -126,6 +129,89 @@ def test_critic_targets_reference_numbers():
     # a truncated last step bootstraps from the stored last observation: 0.5 + 0.9 * (3 + 0.2)
     trunc = Batch(batch.images, batch.actions, batch.rewards, torch.zeros(1, 2), batch.mask)
     assert critic_targets(target, trunc, policy, 0.1, 0.9)[0, 1].item() == pytest.approx(0.5 + 0.9 * 3.2)
+
+
+def _n_step_loop(rewards, terminated, mask, soft_v, gamma, n):
+    """Per-episode, per-step reference of the n-step target."""
+    y = torch.zeros_like(rewards)
+    for b in range(rewards.shape[0]):
+        T = int(mask[b].sum())
+        for t in range(T):
+            m = min(n, T - t)
+            g = sum(gamma**k * float(rewards[b, t + k]) for k in range(m))
+            j = t + m - 1
+            y[b, t] = g + gamma**m * (1.0 - float(terminated[b, j])) * float(soft_v[b, j])
+    return y
+
+
+def test_n_step_targets_reference_numbers():
+    # r = (0, 0, 1), last step terminal; V(s_1..s_3) = (0.5, 0.7, 9); gamma 0.9, n = 2
+    # y_0 = 0 + 0.9 * 0 + 0.81 * V(s_2) = 0.567; y_1 = 0 + 0.9 * 1 (window ends at the terminal) = 0.9
+    # y_2 = 1 (terminal)
+    r, term = torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([[0.0, 0.0, 1.0]])
+    v, mask = torch.tensor([[0.5, 0.7, 9.0]]), torch.ones(1, 3)
+    assert n_step_targets(r, term, mask, v, 0.9, 2)[0].tolist() == pytest.approx([0.567, 0.9, 1.0])
+    # truncated instead: the last windows bootstrap from the stored last observation, V(s_3) = 9
+    y = n_step_targets(r, torch.zeros(1, 3), mask, v, 0.9, 2)
+    assert y[0].tolist() == pytest.approx([0.567, 0.9 + 0.81 * 9.0, 1.0 + 0.9 * 9.0])
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 7])
+def test_n_step_targets_equal_a_loop_over_padded_episodes(n):
+    g = torch.Generator().manual_seed(n)
+    B, L = 5, 9
+    lengths = torch.tensor([9, 1, 4, 6, 2])
+    mask = (torch.arange(L)[None] < lengths[:, None]).float()
+    rewards = torch.rand(B, L, generator=g) * mask
+    terminated = torch.zeros(B, L)
+    terminated[0, 8] = terminated[2, 3] = 1.0  # episodes 1, 3, 4 truncated
+    soft_v = torch.randn(B, L, generator=g)
+    y = n_step_targets(rewards, terminated, mask, soft_v, 0.9, n)
+    ref = _n_step_loop(rewards, terminated, mask, soft_v, 0.9, n)
+    assert torch.allclose(y * mask, ref, atol=1e-6)
+    if n == 1:  # the one-step target exactly
+        assert torch.equal(y, rewards + 0.9 * (1 - terminated) * soft_v)
+
+
+def test_n_step_setting_reaches_the_critic_targets():
+    # three steps, reward only at the end: with n = 3 the first step sees it, with n = 1 it does not
+    target = ConstCritic(torch.zeros(1, 4), torch.zeros(1, 4))
+    batch = Batch(
+        images=torch.zeros(1, 4, C, H, W),
+        actions=torch.zeros(1, 3, 5),
+        rewards=torch.tensor([[0.0, 0.0, 1.0]]),
+        terminated=torch.tensor([[0.0, 0.0, 1.0]]),
+        mask=torch.ones(1, 3),
+    )
+    policy = PolicyOutputs(torch.zeros(1, 4, 5), torch.zeros(1, 4), None, None)
+    assert critic_targets(target, batch, policy, 0.1, 0.5, n_step=1)[0, 0].item() == 0.0
+    assert critic_targets(target, batch, policy, 0.1, 0.5, n_step=3)[0, 0].item() == pytest.approx(0.25)
+
+
+def test_returns_to_go_reference_numbers_and_padding():
+    # r = (0, 1, 0.5) then padding; gamma 0.5: G = (0.5 + 0.125, 1 + 0.25, 0.5, 0)
+    r = torch.tensor([[0.0, 1.0, 0.5, 7.0]])  # the padded step's reward must not count
+    mask = torch.tensor([[1.0, 1.0, 1.0, 0.0]])
+    assert returns_to_go(r, mask, 0.5)[0].tolist() == pytest.approx([0.625, 1.25, 0.5, 0.0])
+
+
+def test_return_bound_raises_only_targets_below_the_observed_return():
+    batch = Batch(
+        images=torch.zeros(1, 4, C, H, W),
+        actions=torch.zeros(1, 3, 5),
+        rewards=torch.tensor([[0.0, 0.0, 1.0]]),
+        terminated=torch.tensor([[0.0, 0.0, 1.0]]),
+        mask=torch.ones(1, 3),
+    )
+    y = torch.tensor([[0.1, 0.95, 1.0]])  # G = (0.81, 0.9, 1): the first is raised, the second kept
+    assert bounded_targets(y, batch, 0.9)[0].tolist() == pytest.approx([0.81, 0.95, 1.0])
+    # and it is wired into the update: same seed, same batch, only the setting differs
+    losses = []
+    for bound in (False, True):
+        torch.manual_seed(0)
+        sac = RecurrentSAC(TinyActor(C * H * W), TinyCritic(C * H * W), SacSettings(return_bound=bound))
+        losses.append(sac.update(batch)["target_q"])
+    assert losses[1] > losses[0]
 
 
 def test_alpha_loss_pushes_toward_target_entropy():
@@ -316,3 +402,5 @@ def test_settings_reject_bad_values():
         SacSettings(gamma=1.5)
     with pytest.raises(ValueError, match="tau"):
         SacSettings(tau=0.0)
+    with pytest.raises(ValueError, match="n_step"):
+        SacSettings(n_step=0)

@@ -12,6 +12,8 @@ on padding. The recurrent nets read observation t together with the previous act
     alpha:   L_alpha = -log_alpha * sum_t mask_t (log pi(a~_t) + target_entropy) / sum_t mask_t
 
 A truncated episode bootstraps from its last observation (stored); only ``terminated`` stops it.
+``n_step`` > 1 replaces y_t by the n-step return (``n_step_targets``); ``return_bound`` raises y_t
+to the episode's observed discounted return-to-go G_t where that is higher (``bounded_targets``).
 
 Speed choices (each saves one pass of an image encoder over B x (L+1) images per update):
 * the actor's forward pass serves both the critic targets (a' at t+1, no gradient) and the actor
@@ -80,6 +82,12 @@ class SacSettings:
     bc_weight: float = 0.0
     """Weight of a behaviour-cloning term in the actor loss: squared error between the policy's mean
     action and the recorded action on demonstration transitions (0: off, the paper)."""
+    n_step: int = 1
+    """Critic targets from n-step returns (1: the one-step target of Equi-RSAC); see ``n_step_targets``."""
+    return_bound: bool = False
+    """Critic targets no lower than the episode's observed discounted return-to-go (self-imitation /
+    optimality-tightening lower bound; valid for non-negative rewards): demonstrations and successes
+    carry their value back at once, instead of one bootstrap hop per target-network lag."""
     share_encoder: bool = False
     """The actor reads the critic's image encoder on detached features (SAC-AE / DrQ): one encoder
     pass with gradients per update instead of two; the actor's loss never moves the encoder."""
@@ -93,6 +101,8 @@ class SacSettings:
             raise ValueError("lr, alpha_lr and init_alpha must be positive")
         if self.bc_weight < 0:
             raise ValueError(f"bc_weight must be >= 0, got {self.bc_weight}")
+        if self.n_step < 1:
+            raise ValueError(f"n_step must be >= 1, got {self.n_step}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -149,15 +159,53 @@ def policy_outputs(
     return PolicyOutputs(actions, log_probs, mean, log_std)
 
 
-def critic_targets(
-    critic_target: nn.Module, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float, gamma: float
+def n_step_targets(
+    rewards: Tensor, terminated: Tensor, mask: Tensor, soft_v: Tensor, gamma: float, n: int
 ) -> Tensor:
+    """y_t = sum_{k<m} gamma^k r_{t+k} + gamma^m (1 - term_{t+m-1}) V(s_{t+m}), m = min(n, T - t).
+
+    All (B, L); ``soft_v[:, t]`` is V(s_{t+1}) and ``mask`` is a prefix of ones (T real steps). The
+    window stops at the episode's end: a terminal step stops the bootstrap, a truncated one
+    bootstraps from the last stored observation. Intermediate steps' entropy bonuses are left out
+    (as in n-step SAC/D4PG variants); n = 1 is the one-step target exactly."""
+    if n == 1:
+        return rewards + gamma * (1.0 - terminated) * soft_v
+    B, L = rewards.shape
+    pad = rewards.new_zeros(B, n - 1)
+    win = lambda x: torch.cat([x, pad], 1).unfold(1, n, 1)  # (B, L, n): x_{t..t+n-1}  # noqa: E731
+    m_win = win(mask)
+    discounts = gamma ** torch.arange(n, dtype=rewards.dtype, device=rewards.device)
+    returns = (win(rewards) * m_win * discounts).sum(-1)
+    steps = m_win.sum(-1).clamp_min(1.0)  # m
+    last = (torch.arange(L, device=rewards.device) + steps.long() - 1).clamp_max(L - 1)  # t + m - 1
+    boot = (1.0 - terminated.gather(1, last)) * soft_v.gather(1, last)
+    return returns + gamma**steps * boot
+
+
+def returns_to_go(rewards: Tensor, mask: Tensor, gamma: float) -> Tensor:
+    """G_t = sum_{k >= t} gamma^(k - t) mask_k r_k, (B, L): the observed discounted return of each step."""
+    L = rewards.shape[1]
+    k = torch.arange(L, dtype=rewards.dtype, device=rewards.device)
+    lag = k[:, None] - k[None, :]  # [k, t] = k - t
+    weights = torch.where(lag >= 0, gamma ** lag.clamp_min(0), torch.zeros_like(lag))
+    return (rewards * mask) @ weights
+
+
+def critic_targets(
+    critic_target: nn.Module, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float, gamma: float,
+    n_step: int = 1,
+) -> Tensor:  # fmt: skip
     """y_t (B, L), without gradient."""
     with torch.no_grad():
         feats, _ = critic_target.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
         q1, q2 = critic_target.q(feats[:, 1:], policy.actions[:, 1:].detach())
         soft_v = torch.min(q1, q2) - alpha * policy.log_probs[:, 1:].detach()
-        return batch.rewards + gamma * (1.0 - batch.terminated) * soft_v
+        return n_step_targets(batch.rewards, batch.terminated, batch.mask, soft_v, gamma, n_step)
+
+
+def bounded_targets(targets: Tensor, batch: Batch, gamma: float) -> Tensor:
+    """max(y_t, G_t): the target never below what the episode actually earned from step t."""
+    return torch.maximum(targets, returns_to_go(batch.rewards, batch.mask, gamma))
 
 
 def critic_loss(
@@ -255,7 +303,9 @@ class RecurrentSAC:
         policy = policy_outputs(
             self.actor, batch, embedding=None if embedding is None else embedding.detach()
         )
-        targets = critic_targets(self.critic_target, batch, policy, alpha, self.s.gamma)
+        targets = critic_targets(self.critic_target, batch, policy, alpha, self.s.gamma, self.s.n_step)
+        if self.s.return_bound:
+            targets = bounded_targets(targets, batch, self.s.gamma)
         q_loss, feats, info = critic_loss(self.critic, batch, targets, feats)
         critic_objective, b_loss, actor_bc_grads = q_loss, None, ()
         if w > 0 and embedding is None:
