@@ -397,31 +397,6 @@ def test_state_dict_round_trip_continues_identically():
     assert ma == mb and b.updates == a.updates == 2
 
 
-def test_actor_average_is_an_exponential_moving_average_of_the_actor():
-    settings = SacSettings(lr=1e-2, actor_average=0.75)
-    sac = RecurrentSAC(*nets(3), settings)
-    assert sac.policy is sac.actor_avg and sac.actor_avg is not sac.actor
-    batch = make_batch([3, 2], L=3, seed=2)
-    expected = {k: v.clone() for k, v in sac.actor.state_dict().items()}
-    for step in range(3):
-        torch.manual_seed(step)
-        sac.update(batch)
-        new = sac.actor.state_dict()
-        expected = {k: 0.75 * v + 0.25 * new[k] for k, v in expected.items()}
-    avg = sac.policy.state_dict()
-    assert all(torch.allclose(avg[k], expected[k], atol=1e-6) for k in expected)
-    assert any(not torch.allclose(avg[k], new[k]) for k in new)  # it lags the actor
-    # it survives a checkpoint
-    other = RecurrentSAC(*nets(99), settings)
-    other.load_state_dict(copy.deepcopy(sac.state_dict()))
-    assert all(torch.equal(other.policy.state_dict()[k], avg[k]) for k in avg)
-
-
-def test_without_actor_average_the_actor_itself_is_published():
-    sac = RecurrentSAC(*nets(3), SacSettings())
-    assert sac.policy is sac.actor and "actor_avg" not in sac.state_dict()
-
-
 def test_settings_reject_bad_values():
     with pytest.raises(ValueError, match="gamma"):
         SacSettings(gamma=1.5)
@@ -429,5 +404,3 @@ def test_settings_reject_bad_values():
         SacSettings(tau=0.0)
     with pytest.raises(ValueError, match="n_step"):
         SacSettings(n_step=0)
-    with pytest.raises(ValueError, match="actor_average"):
-        SacSettings(actor_average=1.0)

@@ -253,20 +253,3 @@ def test_actor_without_previous_action_ignores_it_and_stays_equivariant():
     torch.manual_seed(3)
     with_prev = build_actor(NET)
     assert not torch.allclose(with_prev(images, prev)[0], with_prev(images, torch.zeros_like(prev))[0])
-
-
-def test_actor_average_with_a_shared_encoder_averages_the_encoder_too():
-    actor, critic, _ = nets()
-    sac = RecurrentSAC(actor, critic, SacSettings(share_encoder=True, actor_average=0.5, lr=1e-2))
-    assert sac.policy.encoder is not sac.critic.encoder  # the published policy owns its copy
-    enc0 = {k: v.clone() for k, v in sac.critic.encoder.state_dict().items()}
-    batch = to_batch(replay_with([4, 6], demos=1).sample(3, np.random.default_rng(6)))
-    torch.manual_seed(0)
-    sac.update(batch)
-    enc1 = sac.critic.encoder.state_dict()
-    moved = [k for k in enc1 if not torch.equal(enc1[k], enc0[k])]
-    assert moved  # the critic step moved the shared encoder
-    avg = sac.policy.encoder.state_dict()
-    for k in enc1:
-        if enc1[k].is_floating_point():
-            assert torch.allclose(avg[k], 0.5 * enc0[k] + 0.5 * enc1[k], atol=1e-6), k

@@ -88,10 +88,6 @@ class SacSettings:
     """Critic targets no lower than the episode's observed discounted return-to-go (self-imitation /
     optimality-tightening lower bound; valid for non-negative rewards): demonstrations and successes
     carry their value back at once, instead of one bootstrap hop per target-network lag."""
-    actor_average: float = 0.0
-    """Decay of an exponential moving average of the actor's weights (encoder included) kept beside
-    it and published in its place (``RecurrentSAC.policy``): the acting and evaluated policy then
-    averages over the last ~1/(1 - decay) updates instead of following each small batch; 0: off."""
     share_encoder: bool = False
     """The actor reads the critic's image encoder on detached features (SAC-AE / DrQ): one encoder
     pass with gradients per update instead of two; the actor's loss never moves the encoder."""
@@ -105,8 +101,6 @@ class SacSettings:
             raise ValueError("lr, alpha_lr and init_alpha must be positive")
         if self.bc_weight < 0:
             raise ValueError(f"bc_weight must be >= 0, got {self.bc_weight}")
-        if not 0.0 <= self.actor_average < 1.0:
-            raise ValueError(f"actor_average must be in [0, 1), got {self.actor_average}")
         if self.n_step < 1:
             raise ValueError(f"n_step must be >= 1, got {self.n_step}")
 
@@ -294,13 +288,7 @@ class RecurrentSAC:
         self.actor_opt = torch.optim.Adam(self._actor_params, lr=settings.lr)
         self.critic_opt = torch.optim.Adam(self._critic_params, lr=settings.lr)
         self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=settings.alpha_lr)
-        self.actor_avg = copy.deepcopy(actor).requires_grad_(False) if settings.actor_average else None
         self.updates = 0
-
-    @property
-    def policy(self) -> nn.Module:
-        """The actor to publish: the weight average when ``actor_average`` is on, else the actor."""
-        return self.actor if self.actor_avg is None else self.actor_avg
 
     @property
     def alpha(self) -> Tensor:
@@ -340,8 +328,6 @@ class RecurrentSAC:
         if self.s.autotune_alpha:
             _step(self.alpha_opt, a_loss, [self.log_alpha])
         soft_update(self.critic_target, self.critic, self.s.tau)
-        if self.actor_avg is not None:
-            soft_update(self.actor_avg, self.actor, 1.0 - self.s.actor_average)
         self.updates += 1
         extra = {} if b_loss is None else {"bc_loss": float(b_loss.detach())}
         return extra | {
@@ -366,7 +352,7 @@ class RecurrentSAC:
             "critic_opt": self.critic_opt.state_dict(),
             "alpha_opt": self.alpha_opt.state_dict(),
             "updates": self.updates,
-        } | ({} if self.actor_avg is None else {"actor_avg": self.actor_avg.state_dict()})
+        }
 
     def load_state_dict(self, d: dict) -> None:
         self.actor.load_state_dict(d["actor"])
@@ -378,5 +364,3 @@ class RecurrentSAC:
         self.critic_opt.load_state_dict(d["critic_opt"])
         self.alpha_opt.load_state_dict(d["alpha_opt"])
         self.updates = int(d["updates"])
-        if self.actor_avg is not None:  # a checkpoint from before the average starts it from the actor
-            self.actor_avg.load_state_dict(d.get("actor_avg", self.actor.state_dict()))
