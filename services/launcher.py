@@ -55,9 +55,11 @@ class RunConfig:
     """Task: block_pull, block_pick or drawer_open."""
     variant: str = "mea"
     """What the paper compares: equirsac (rendered depth image, isometric x4), equiobs (voxel
-    projection, isometric x4), mea (voxel projection, isometric x4 + MEA x6 on the demos)."""
+    projection, isometric x4), mea (voxel projection, isometric x4 + MEA x6 on the demos, and with the
+    cpu-small learner on online successes too: see mea_on)."""
     mea_on: str = ""
-    """mea variant only: which episodes get MEA (demos, the paper's default; successes; all)."""
+    """mea variant only: which episodes get MEA (demos: the paper; successes: the demos and every online
+    success; all). Empty: successes with the cpu-small learner preset, demos with the others."""
     env_steps: int = 40_000
     """Env-step budget (the paper: 40K, demos included); the run stops after the evaluation at the
     budget. 0: run until Ctrl-C."""
@@ -110,6 +112,11 @@ class RunConfig:
     final_eval_seconds: float = 900.0
     """At the budget, how long to wait for the evaluation of the last weights (final_eval_episodes
     episodes) before stopping."""
+
+    def resolved_mea_on(self) -> str:
+        """What the mea variant runs MEA on: ``mea_on``, else the learner preset's default (the CPU
+        recipe adds online successes: beyond the two demos, they are the only other layouts)."""
+        return self.mea_on or {"cpu-small": "successes"}.get(self.learner_preset, "demos")
 
     def __post_init__(self) -> None:
         if self.actors < 0:

@@ -495,11 +495,11 @@ def main(argv: Sequence[str]) -> int:
 def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
     """Arguments `mea run` passes to augmenter ``index``: what the run's variant augments.
 
-    mea: voxel projection, isometric x4 + MEA x6 on demos (``--mea-on`` may extend it);
+    mea: voxel projection, isometric x4 + MEA x6 on what ``RunConfig.resolved_mea_on`` says (demos in the paper);
     equiobs: voxel projection, isometric x4; equirsac: the rendered depth image, isometric x4."""
     args = ["--augment.seed", str(run_cfg.seed)]
     if run_cfg.variant == "mea":
-        return args + ["--augment.mea-on", run_cfg.mea_on or "demos"]
+        return args + ["--augment.mea-on", run_cfg.resolved_mea_on()]
     if run_cfg.variant == "equiobs":
         return args + ["--augment.mea-on", "none"]
     return args + ["--augment.mea-on", "none", "--augment.observation", "depth"]

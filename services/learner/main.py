@@ -152,17 +152,18 @@ PRESETS = {
     "paper": LearnerConfig(),
     # cpu-small: the recipe for two CPU cores and a 20K env-step budget (README, "Presets"). Cuts:
     # halved network widths, 8 episodes per batch instead of 32, 0.5 updates per env step instead of
-    # 1 (the replay gate lets actors run 2 steps per update); replay 50k. Additions, each a field:
-    # half of every batch from the demonstration set (demos, their copies, online successes), a BC
-    # term, alpha from 0.01, LayerNorm in the Q MLPs, one encoder shared by actor and critic.
+    # 1 (the replay gate lets actors run 2 steps per update). Additions, each a field: half of every
+    # batch from the demonstration set (demos, their copies, online successes), a BC term, alpha from
+    # 0.01, LayerNorm in the Q MLPs, one encoder shared by actor and critic, critic targets bounded
+    # below by the observed return; replay 120k holds a whole 20K-step run with its copies.
     "cpu-small": LearnerConfig(
         net=dataclasses.replace(NET_PRESETS["cpu-small"], critic_layer_norm=True, actor_prev_action=False),
-        sac=SacSettings(init_alpha=0.01, bc_weight=0.5, share_encoder=True),
+        sac=SacSettings(init_alpha=0.01, bc_weight=2.0, share_encoder=True, return_bound=True),
         demo_fraction=0.5,
         successes_as_demos=True,
         batch_size=8,
         samples_per_insert=0.5,
-        replay_capacity=50_000,
+        replay_capacity=120_000,
         min_steps=100,
         error_buffer=100.0,
         publish_every=5,

@@ -18,7 +18,9 @@ from services.learner.main import launch_args as learner_args
 def test_variants_configure_actor_augmenter_and_learner(tmp_path):
     mea = RunConfig(variant="mea")
     assert "--augment.mea-on" in augmenter_args(mea, tmp_path, 0)
-    assert augmenter_args(mea, tmp_path, 0)[-1] == "demos"
+    assert augmenter_args(mea, tmp_path, 0)[-1] == "successes"  # the CPU recipe's default
+    assert augmenter_args(RunConfig(variant="mea", learner_preset="paper"), tmp_path, 0)[-1] == "demos"
+    assert augmenter_args(RunConfig(variant="mea", mea_on="demos"), tmp_path, 0)[-1] == "demos"
     assert augmenter_args(RunConfig(variant="mea", mea_on="all"), tmp_path, 0)[-1] == "all"
     assert augmenter_args(RunConfig(variant="equiobs"), tmp_path, 0)[-1] == "none"
     rsac = RunConfig(variant="equirsac")
