@@ -173,16 +173,21 @@ def test_n_step_targets_equal_a_loop_over_padded_episodes(n):
         assert torch.equal(y, rewards + 0.9 * (1 - terminated) * soft_v)
 
 
-def test_n_step_setting_reaches_the_critic_targets():
-    # three steps, reward only at the end: with n = 3 the first step sees it, with n = 1 it does not
-    target = ConstCritic(torch.zeros(1, 4), torch.zeros(1, 4))
-    batch = Batch(
+def success_at_step_3() -> Batch:
+    """One three-step episode whose only reward (1) ends it."""
+    return Batch(
         images=torch.zeros(1, 4, C, H, W),
         actions=torch.zeros(1, 3, 5),
         rewards=torch.tensor([[0.0, 0.0, 1.0]]),
         terminated=torch.tensor([[0.0, 0.0, 1.0]]),
         mask=torch.ones(1, 3),
     )
+
+
+def test_n_step_setting_reaches_the_critic_targets():
+    # three steps, reward only at the end: with n = 3 the first step sees it, with n = 1 it does not
+    target = ConstCritic(torch.zeros(1, 4), torch.zeros(1, 4))
+    batch = success_at_step_3()
     policy = PolicyOutputs(torch.zeros(1, 4, 5), torch.zeros(1, 4), None, None)
     assert critic_targets(target, batch, policy, 0.1, 0.5, n_step=1)[0, 0].item() == 0.0
     assert critic_targets(target, batch, policy, 0.1, 0.5, n_step=3)[0, 0].item() == pytest.approx(0.25)
@@ -196,13 +201,7 @@ def test_returns_to_go_reference_numbers_and_padding():
 
 
 def test_return_bound_raises_only_targets_below_the_observed_return():
-    batch = Batch(
-        images=torch.zeros(1, 4, C, H, W),
-        actions=torch.zeros(1, 3, 5),
-        rewards=torch.tensor([[0.0, 0.0, 1.0]]),
-        terminated=torch.tensor([[0.0, 0.0, 1.0]]),
-        mask=torch.ones(1, 3),
-    )
+    batch = success_at_step_3()
     y = torch.tensor([[0.1, 0.95, 1.0]])  # G = (0.81, 0.9, 1): the first is raised, the second kept
     assert bounded_targets(y, batch, 0.9)[0].tolist() == pytest.approx([0.81, 0.95, 1.0])
     # and it is wired into the update: same seed, same batch, only the setting differs

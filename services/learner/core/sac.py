@@ -183,12 +183,10 @@ def n_step_targets(
 
 
 def returns_to_go(rewards: Tensor, mask: Tensor, gamma: float) -> Tensor:
-    """G_t = sum_{k >= t} gamma^(k - t) mask_k r_k, (B, L): the observed discounted return of each step."""
-    L = rewards.shape[1]
-    k = torch.arange(L, dtype=rewards.dtype, device=rewards.device)
-    lag = k[:, None] - k[None, :]  # [k, t] = k - t
-    weights = torch.where(lag >= 0, gamma ** lag.clamp_min(0), torch.zeros_like(lag))
-    return (rewards * mask) @ weights
+    """G_t = sum_{k >= t} gamma^(k - t) mask_k r_k, (B, L): the observed discounted return of each
+    step, i.e. the n-step target with a window as long as the batch and nothing to bootstrap from."""
+    zeros = torch.zeros_like(rewards)
+    return n_step_targets(rewards * mask, zeros, mask, zeros, gamma, rewards.shape[1])
 
 
 def critic_targets(
