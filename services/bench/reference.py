@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 PUBLIC_UPDATE_SECONDS = 11.1
+PUBLIC_UPDATE_SECONDS_BY_THREADS = {1: 15.4, 2: PUBLIC_UPDATE_SECONDS}
+"""The public code's update by torch thread count (its training entry point forces 1 thread)."""
 PUBLIC_ENV_STEPS_PER_SECOND = 10.3
 PUBLIC_REPLAY_BYTES_PER_1E5 = 10.5e9
 
