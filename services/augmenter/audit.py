@@ -51,7 +51,9 @@ A rotated copy is the source scene turned about a vertical axis; the gripper-cen
 is the same for every axis, so ``audit_placement`` picks the one that keeps the turned gripper
 path and objects inside the workspace, the arm's reach and the wrist's range, turns the sim's
 objects (and the arm's start pose) accordingly, then the actions are replayed as for MEA. A copy
-with no such placement is counted as *not simulable*, apart from valid and invalid. Turned objects
+with no such placement is counted as *not simulable*, apart from valid and invalid. Once objects
+slide, a turned scene's future is not the turned future in pybullet, whose friction depends on a
+body's yaw (``audit_isotropy``, reported beside). Turned objects
 move in the world, so the fixed cameras sample them through other pixels and voxels: rotated
 copies are judged against their own floor (``rotated_views``, ``TASK_ROTATED_TOLERANCES``).
 
@@ -72,6 +74,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from proto.episode import Episode
+from services.augmenter.audit_isotropy import drag_isotropy, spread
 from services.augmenter.audit_placement import NotSimulableError, place, plan_placement, rotation_of
 from services.augmenter.core.isometric import isometric_copy
 from services.augmenter.core.mea import MeaSettings
@@ -565,6 +568,7 @@ def run_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[s
                 for reason, n in reasons.items():
                     skipped.setdefault(kind, {})[reason] = skipped.get(kind, {}).get(reason, 0) + n
         timing["audit s"] = time.perf_counter() - t0
+        isotropy = drag_isotropy(env, cfg.seed)
     finally:
         env.close()
 
@@ -592,6 +596,8 @@ def run_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[s
             for row in rep.floor_rows([], turned, segments, rtol)
             if row["n"]
         ],
+        "simulator isotropy: the movable object pushed along its own axis, turned by yaw (the floor "
+        "of rotated copies once objects slide)": isotropy,
         "copies and runtime": [{
             "demos": len(demos), "expert attempts": attempts,
             "copies requested": len(demos) * (cfg.isometric + cfg.copies * (1 + cfg.mea_isometric)),
@@ -614,6 +620,7 @@ def run_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[s
         "rotated_tolerance": dataclasses.asdict(rtol),
         "rotated_tolerance_covers_floor": rep.floor_covered([], turned, segments, rtol),
         "rotated_views": len(turned),
+        "simulator_isotropy": spread(isotropy),
         "notes": "tolerances: 1.25x the free-space floor (identity replays before any contact + teleported "
         "views); trivial/termination transitions involve contact, whose physics does not repeat exactly: "
         "compare their validity with the raw demonstrations' (the arm is redundant, so a copy reaches the "

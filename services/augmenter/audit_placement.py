@@ -14,8 +14,14 @@ can act:
   the controller clips the commanded yaw there and a wrapped branch would be a different motion;
 * the box: every recorded pivot position inside the pivot bounds, every object position inside
   the workspace (x, y), which bounds the translation to a box;
-* the reach: every recorded pivot pose reachable by the arm; the translations of a grid over the
-  box are tried from its centre outwards.
+* the reach: every recorded pivot pose reachable by the arm.
+
+Among the translations that fit, the one tried first keeps the copy's contact where the recording
+had it (``anchor_shift``: the turn is then about the mean pivot position of the steps in contact, or
+the last step if none), then a grid over the box from there outwards. The gripper-centric copy is
+the same for every choice, but the arm is not: contact outcomes (a paddle or jaw giving under
+load, a dragged block's slide) depend on the joint configuration, so the copy is played where the
+arm is as it was when the recording touched the objects.
 
 A copy for which no placement exists is *not simulable* (``NotSimulableError`` with the reason): the
 audit reports those apart, neither valid nor invalid. The scene is then moved rigidly: every body
@@ -100,6 +106,20 @@ def yaw_branch(ep: Episode, limit: float) -> float | None:
     return 2 * math.pi * k if hi + 2 * math.pi * k <= limit else None
 
 
+def anchor_shift(aug: Episode) -> np.ndarray:
+    """The translation that puts the copy's contact steps back where the recording had them: the
+    mean over those steps (the last step if none) of (un-turned pivot - turned pivot), where the
+    copy's poses are the recording's turned by phi about ``WORKSPACE_CENTRE``."""
+    phi = rotation_of(aug)
+    c, s = cos_sin(phi)
+    centre = np.asarray(WORKSPACE_CENTRE, np.float64)
+    xy = np.asarray(aug.gripper_pose[:, :2], np.float64)
+    touching = np.asarray(aug.contacts, bool).any(axis=1)
+    steps = xy[touching] if touching.any() else xy[-1:]
+    unturned = (steps - centre) @ np.array([[c, -s], [s, c]]) + centre  # row vectors: v @ R(phi) = R(-phi) v
+    return (unturned - steps).mean(axis=0)
+
+
 def plan_placement(env: ManipulationEnv, aug: Episode) -> Placement:
     """Where ``aug`` goes in ``env`` (see the module docstring); NotSimulableError if nowhere."""
     phi = rotation_of(aug)
@@ -118,11 +138,11 @@ def plan_placement(env: ManipulationEnv, aug: Episode) -> Placement:
     if np.any(low > high + 1e-9):
         raise NotSimulableError("workspace: the turned scene does not fit in the workspace")
     high = np.maximum(high, low)
-    centre = (low + high) / 2
+    anchor = np.clip(anchor_shift(aug), low, high)
     grid = np.stack(np.meshgrid(*[np.linspace(a, b, GRID) for a, b in zip(low, high, strict=True)]), -1)
-    candidates = sorted(grid.reshape(-1, 2), key=lambda d: float(np.linalg.norm(d - centre)))
+    candidates = sorted(grid.reshape(-1, 2), key=lambda d: float(np.linalg.norm(d - anchor)))
     yaws = np.asarray(aug.gripper_pose[:, 3], np.float64) + turn
-    for delta in [centre, *candidates]:
+    for delta in [anchor, *candidates]:
         moved = pivots + np.r_[delta, 0.0]
         if all(
             np.linalg.norm(env.robot.reachable(p, float(y)) - p) <= 1e-9
