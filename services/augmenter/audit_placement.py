@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from proto.episode import Episode
-from services.augmenter.core.isometric import WORKSPACE_CENTRE, cos_sin
+from services.augmenter.core.isometric import WORKSPACE_CENTRE, cos_sin, rotate_points
 from services.augmenter.core.mea import DELTA_THETA
 
 if TYPE_CHECKING:  # pybullet is imported only where an env exists
@@ -110,13 +110,11 @@ def anchor_shift(aug: Episode) -> np.ndarray:
     """The translation that puts the copy's contact steps back where the recording had them: the
     mean over those steps (the last step if none) of (un-turned pivot - turned pivot), where the
     copy's poses are the recording's turned by phi about ``WORKSPACE_CENTRE``."""
-    phi = rotation_of(aug)
-    c, s = cos_sin(phi)
     centre = np.asarray(WORKSPACE_CENTRE, np.float64)
     xy = np.asarray(aug.gripper_pose[:, :2], np.float64)
     touching = np.asarray(aug.contacts, bool).any(axis=1)
     steps = xy[touching] if touching.any() else xy[-1:]
-    unturned = (steps - centre) @ np.array([[c, -s], [s, c]]) + centre  # row vectors: v @ R(phi) = R(-phi) v
+    unturned = rotate_points(steps - centre, -rotation_of(aug)) + centre
     return (unturned - steps).mean(axis=0)
 
 
