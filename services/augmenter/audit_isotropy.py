@@ -3,9 +3,9 @@
 A rotated copy (isometric, MEA∘isometric) claims that turning a scene about a vertical axis turns
 its future. Real friction is isotropic; pybullet's is not: a block on the floor that is turned by an
 angle and pushed along its own axis by the same force slides a different distance, and sideways,
-depending on the angle (measured with this module: Block Pull's block slides 166 mm at 0° and 90°,
-261 mm at 45°, drifting 26 mm sideways; neither more solver iterations, a smaller time step, cone
-friction nor maximal coordinates change it). Such a turned copy cannot be reproduced by the
+depending on the angle (measured with this module: Block Pull's block slides 114 mm at 0° and 90°,
+150 mm at 45°, drifting up to 15 mm sideways; Block Pick's 227 against 273 mm; neither more solver
+iterations, a smaller time step, cone friction nor maximal coordinates change it). Such a turned copy cannot be reproduced by the
 simulator once objects slide, whatever the augmentation does, so ``mea audit`` reports this floor
 beside its rotated copies' validity.
 
