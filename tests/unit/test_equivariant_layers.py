@@ -269,3 +269,25 @@ def test_lstm_zero_state_default_and_split_sequences() -> None:
     torch.testing.assert_close(torch.cat([first, second], dim=1), out)
     torch.testing.assert_close(end[0], state[0])
     torch.testing.assert_close(end[1], state[1])
+
+
+@pytest.mark.parametrize("group", GROUPS, ids=lambda g: g.name)
+def test_fused_lstm_equals_the_step_loop_in_values_and_gradients(group: Group) -> None:
+    """The peephole-free LSTM runs aten's fused recurrence; with zero peepholes the same weights take
+    the Python step loop. Outputs, final state and every parameter's and input's gradient agree."""
+    fused, x, (h0, c0) = _lstm_case(group, False)
+    looped = EquivariantLSTM(group, 3, 2, peephole=True)
+    looped.load_state_dict({**fused.state_dict(), "peephole": torch.zeros(3, 2)})
+    grads = []
+    for lstm in (fused, looped):
+        xi, hi, ci = (t.clone().requires_grad_(True) for t in (x, h0, c0))
+        out, (h, c) = lstm(xi, (hi, ci))
+        (out.sin().sum() + h.square().sum() + c.cos().sum()).backward()
+        named = {n: p.grad for n, p in lstm.named_parameters() if n != "peephole"}
+        grads.append((out, h, c, xi.grad, hi.grad, ci.grad, named))
+    for a, b in zip(grads[0][:6], grads[1][:6], strict=True):
+        torch.testing.assert_close(a, b)
+    assert grads[0][6].keys() == grads[1][6].keys() and grads[0][6]
+    for name, g in grads[0][6].items():
+        assert g.abs().max() > 0
+        torch.testing.assert_close(g, grads[1][6][name])

@@ -314,6 +314,15 @@ class EquivariantLSTM(nn.Module):
     def forward(self, x: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState]:
         B, T, _ = x.shape
         h, c = self.initial_state(B, x) if state is None else state
+        if self.peephole is None:
+            # Without peepholes this is a plain LSTM whose weights are the expanded (equivariant)
+            # matrices, gates in the same (i, f, g, o) order: aten's fused loop, about 4x faster
+            # forward + backward than the Python loop below on a CPU (B 8, T 51, 64 channels).
+            wi, wh = self.input_map.expanded_weight(), self.hidden_map.expanded_weight()
+            bi = field_bias(self.input_map.bias, self.group)
+            params = [wi, wh, bi, torch.zeros_like(bi)]
+            out, h1, c1 = torch.lstm(x, (h[None], c[None]), params, True, 1, 0.0, self.training, False, True)
+            return out, (h1[0], c1[0])
         xg = self.input_map(x).unbind(1)  # T x (B, 4 H); unbind: one stack in backward, not T scatters
         wh = self.hidden_map.expanded_weight()  # (4 H, H)
         peep = self.expanded_peepholes()
