@@ -423,6 +423,9 @@ class Message:
     TYPE: ClassVar[str]
     VERSION: ClassVar[int]
     NESTED_ONLY: ClassVar[bool] = False  # only ever a field of another message
+    OLDER_READABLE: ClassVar[dict[int, frozenset[str]]] = {}
+    """Older versions this decoder still reads, each with the optional fields added since: such a
+    message is the current version with those fields at their defaults (so recordings stay readable)."""
     _REGISTRY: ClassVar[dict[str, type[Message]]] = {}
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -502,8 +505,12 @@ def decode(data: bytes | bytearray | memoryview, limits: Limits = DEFAULT_LIMITS
     version = obj.get("_v")
     if type(version) is not int:
         raise ProtocolError("_v", "schema version missing or not an int")
-    if version != cls.VERSION:
-        raise ProtocolError("_v", f"{cls.TYPE} schema version {version} not supported (reads {cls.VERSION})")
+    if version != cls.VERSION and version not in cls.OLDER_READABLE:
+        reads = ", ".join(str(v) for v in sorted({cls.VERSION, *cls.OLDER_READABLE}))
+        raise ProtocolError("_v", f"{cls.TYPE} schema version {version} not supported (reads {reads})")
+    for name in sorted(cls.OLDER_READABLE.get(version, ())):
+        if name in obj:
+            raise ProtocolError(f"{cls.TYPE}.{name}", f"unknown field in version {version}")
     return cls.from_wire(obj, limits, top_level=True)
 
 

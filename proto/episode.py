@@ -32,6 +32,9 @@ POLICY_KINDS = ("expert_probe", "expert_direct", "random", "learned")
 AUGMENTATION_KINDS = ("isometric", "mea", "mea+isometric")
 ID_PATTERN = r"[A-Za-z0-9_.-]{1,96}"
 ACTION_DIM = 5
+OBJECT_SYMMETRY = {"block_pull": 4, "block_pick": 4, "drawer_open": 1, "surgical_grasp_any": 1}
+"""Order n of each task's objects' rotational symmetry about z: an object's yaw in
+``object_poses`` means the same body placement modulo 2 pi / n (square blocks 4, a drawer 1)."""
 
 
 @dataclass(frozen=True)
@@ -59,7 +62,8 @@ class Episode(Message):
     """A finished episode: policy observations, actions, rewards, flags and privileged state."""
 
     TYPE = "Episode"
-    VERSION = 1
+    VERSION = 2
+    OLDER_READABLE = {1: frozenset({"fixed_object"})}  # v2 added fixed_object
 
     episode_id: str = spec(Str(pattern=ID_PATTERN), "unique id, `<actor_id>-<seed>-<counter>` by convention")
     task: str = spec(Str(choices=TASKS), "task name")
@@ -100,6 +104,12 @@ class Episode(Message):
         "privileged: per object (x, y, z, qx, qy, qz, qw) in the world frame",
     )
     contacts: np.ndarray = spec(Arr(("bool",), ("T+1", "S-1")), "privileged: gripper touches object i")
+    fixed_object: int = spec(
+        Int(-1, 15),
+        "privileged: index (into the objects, `segments[1:]`) of the immovable object; -1 where the task "
+        "has none or the producer does not know it",
+        default=-1,
+    )
     images: np.ndarray | None = spec(
         Opt(Arr(("uint8", "uint16", "float16", "float32"), ("T+1", "C", "H", "W"), finite=True)),
         "optional policy images (channels first); nil when the consumer renders them",
@@ -132,5 +142,7 @@ class Episode(Message):
             raise ProtocolError("terminated", "the last step must be terminated or truncated")
         if self.terminated[-1] and self.truncated[-1]:
             raise ProtocolError("truncated", "a step is either terminated or truncated, not both")
+        if self.fixed_object >= n_seg - 1:
+            raise ProtocolError("fixed_object", f"object {self.fixed_object} of {n_seg - 1}")
         if self.augmentation is not None and self.augmentation.phase_split > self.num_steps:
             raise ProtocolError("augmentation.phase_split", "beyond the episode's last step")

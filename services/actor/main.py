@@ -157,6 +157,7 @@ def run_episode(
 ) -> EpisodeBuilder:
     """Roll out one episode with ``act(obs) -> action``; ``on_step(seconds)`` sees each step's time."""
     obs = env.reset(seed)
+    builder.meta["fixed_object"] = env.task.fixed_index()  # privileged, for the learner's critic
     builder.observe(obs)
     for _ in range(env.settings.max_steps):
         t0 = time.perf_counter()

@@ -317,7 +317,7 @@ def test_fuzz_hypothesis_bytes(data: bytes) -> None:
 # ----------------------------------------------------------------------------------------------
 
 HUGE = 0xFFFFFFF0  # a ~4 GB claim in a 32-bit length (the brief's "2 GB" class and beyond)
-ENVELOPE = b"\x83\xa5_type\xa7Episode\xa2_v\x01\xa6points"  # a map of 3, two entries, a key
+ENVELOPE = b"\x83\xa5_type\xa7Episode\xa2_v\x02\xa6points"  # a map of 3, two entries, a key
 
 
 def ext_ndarray(dtype: str, shape: list[int], data: bytes) -> bytes:

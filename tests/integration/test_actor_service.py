@@ -29,6 +29,11 @@ def test_actor_publishes_demos_then_random_episodes_that_validate():
     for ep in demos:
         assert isinstance(ep, Episode) and ep.is_demo and ep.policy_kind.startswith("expert_")
         assert ep.terminated[-1] and ep.rewards[-1] == 1.0  # only successful demos are published
+        # privileged: the immovable object is named, and it is the one that stayed put
+        fixed, movable = ep.fixed_object, 1 - ep.fixed_object
+        assert fixed in (0, 1)
+        drift = np.abs(ep.object_poses[:, :, :3] - ep.object_poses[0, :, :3]).max(axis=(0, 2))
+        assert drift[fixed] < 1e-3 < 0.01 < drift[movable], drift
     assert {ep.policy_kind for ep in demos} == {"expert_probe", "expert_direct"}
     for ep in rand:
         assert ep.policy_kind == "random" and not ep.is_demo and ep.policy_version == -1

@@ -199,7 +199,7 @@ def test_bad_payloads_are_counted_reported_and_skipped(bus, make_episode) -> Non
     good = make_episode(T=3, seed=7)
     wire = good.to_wire()
     wire["actions"] = wire["actions"] * 0 + 2.0  # out of [-1, 1]
-    out_of_range = pack({"_type": "Episode", "_v": 1, **wire})
+    out_of_range = pack({"_type": "Episode", "_v": 2, **wire})
 
     bus.publish(EPISODES_RAW, b"\xc1\xff garbage \x00", source="actor-0")  # not msgpack
     bus.publish(EPISODES_RAW, out_of_range, source="actor-0")
