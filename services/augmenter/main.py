@@ -498,6 +498,7 @@ def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
     mea: voxel projection, isometric x4 + MEA x6 on what ``RunConfig.resolved_mea_on`` says (demos in the paper);
     equiobs: voxel projection, isometric x4; equirsac: the rendered depth image, isometric x4."""
     args = ["--augment.seed", str(run_cfg.seed)]
+    args += ["--augment.success-isometric-copies", str(run_cfg.resolved_success_rotations())]
     if run_cfg.variant == "mea":
         return args + ["--augment.mea-on", run_cfg.resolved_mea_on()]
     if run_cfg.variant == "equiobs":

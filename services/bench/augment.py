@@ -189,7 +189,7 @@ def staged(raw: Episode, s: AugmentSettings) -> tuple[list[Episode], dict[str, f
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     seed = episode_seed(s.seed, raw.episode_id)
-    out = [raw, *isometric_copies(raw, s.isometric_copies, seed)]
+    out = [raw, *isometric_copies(raw, s.isometric_count(raw), seed)]
     t1 = time.perf_counter()
     if s.applies_mea(raw):
         made = [copy for copy, _ in mea_copies(raw, s.mea, s.mea_copies, seed) if copy is not None]

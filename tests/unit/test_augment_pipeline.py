@@ -35,6 +35,17 @@ def test_a_demo_gets_raw_then_isometric_then_mea_copies_with_images():
     assert len(mea_phis) == 1 and len(iso_phis) == 4
 
 
+def _with_outcome(ep: Episode, demo: bool, success: bool) -> Episode:
+    T = ep.num_steps
+    rewards = np.zeros(T, np.float32)
+    terminated, truncated = np.zeros(T, bool), np.zeros(T, bool)
+    if success:
+        rewards[-1], terminated[-1] = 1.0, True
+    else:
+        truncated[-1] = True
+    return dataclasses.replace(ep, is_demo=demo, rewards=rewards, terminated=terminated, truncated=truncated)
+
+
 @pytest.mark.parametrize(
     ("mea_on", "demo", "success", "gets_mea"),
     [
@@ -48,18 +59,26 @@ def test_a_demo_gets_raw_then_isometric_then_mea_copies_with_images():
     ],
 )
 def test_which_episodes_get_mea(mea_on, demo, success, gets_mea):
-    ep, _ = synthetic_episode(2)
-    T = ep.num_steps
-    rewards = np.zeros(T, np.float32)
-    terminated, truncated = np.zeros(T, bool), np.zeros(T, bool)
-    if success:
-        rewards[-1], terminated[-1] = 1.0, True
-    else:
-        truncated[-1] = True
-    ep = dataclasses.replace(ep, is_demo=demo, rewards=rewards, terminated=terminated, truncated=truncated)
+    ep = _with_outcome(synthetic_episode(2)[0], demo, success)
     out, _ = augment_episode(ep, AugmentSettings(mea_on=mea_on, reproject=False))
     assert ("mea+isometric" in _kinds(out)) == gets_mea
     assert _kinds(out).count("isometric") == 4  # the isometric copies apply to every stored episode
+
+
+@pytest.mark.parametrize(
+    ("demo", "success", "rotated"), [(True, True, 9), (False, True, 9), (False, False, 4)]
+)
+def test_successes_get_their_own_count_of_rotated_copies(demo, success, rotated):
+    ep = _with_outcome(synthetic_episode(4)[0], demo, success)
+    s = AugmentSettings(success_isometric_copies=9, mea_on="none", reproject=False)
+    out, _ = augment_episode(ep, s)
+    assert _kinds(out) == ["raw"] + ["isometric"] * rotated
+    angles = {float(e.augmentation.params["rotation"][0]) for e in out[1:]}
+    assert len(angles) == rotated  # each copy its own angle
+    # and the first copies are the ones the paper's count makes: the extra count only adds copies
+    paper, _ = augment_episode(ep, dataclasses.replace(s, success_isometric_copies=0))
+    for a, b in zip(paper[1:], out[1:5], strict=True):
+        assert np.array_equal(a.actions, b.actions) and np.array_equal(a.points, b.points)
 
 
 def test_a_copy_regenerates_from_its_provenance():

@@ -11,7 +11,8 @@ from proto.control import EvalReport, Heartbeat
 from services.actor.main import launch_args as actor_args
 from services.augmenter.main import launch_args as augmenter_args
 from services.common import config
-from services.launcher import ChildSpec, RunConfig, StatusBoard, resumed_config
+from services.launcher import CPU_LEARNER_PRESETS, ChildSpec, RunConfig, StatusBoard, resumed_config
+from services.learner.main import PRESETS as LEARNER_PRESETS
 from services.learner.main import launch_args as learner_args
 
 
@@ -32,6 +33,22 @@ def test_variants_configure_actor_augmenter_and_learner(tmp_path):
     assert ln[ln.index("--observation") + 1] == "depth"
     assert learner_args(RunConfig(task="block_pick"), tmp_path, 0)[3] == "d4"
     assert learner_args(RunConfig(task="block_pull"), tmp_path, 0)[3] == "c4"
+    # rotated copies of each success: the CPU recipe's 64 in every variant, the paper's count otherwise
+    for run, count in [(mea, "64"), (rsac, "64"), (RunConfig(learner_preset="paper"), "0"),
+                       (RunConfig(success_rotations=8), "8"), (RunConfig(learner_preset="cpu-small-state"), "64")]:  # fmt: skip
+        args = augmenter_args(run, tmp_path, 0)
+        assert args[args.index("--augment.success-isometric-copies") + 1] == count
+    with pytest.raises(ValueError, match="success_rotations"):
+        RunConfig(success_rotations=-1)
+    # the launcher's CPU recipes are learner presets, and each gets the CPU defaults
+    assert set(CPU_LEARNER_PRESETS) <= set(LEARNER_PRESETS)
+    for name in CPU_LEARNER_PRESETS:
+        assert RunConfig(learner_preset=name).resolved_mea_on() == "successes"
+    assert RunConfig(learner_preset="paper").resolved_mea_on() == "demos"
+    assert LEARNER_PRESETS["cpu-small-state"].net.critic_input == "state"
+    assert (
+        LEARNER_PRESETS["cpu-small"].net.critic_input == LEARNER_PRESETS["paper"].net.critic_input == "image"
+    )
     with pytest.raises(ValueError, match="mea-on"):
         RunConfig(variant="equiobs", mea_on="all")
     with pytest.raises(ValueError, match="variant"):

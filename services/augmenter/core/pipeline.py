@@ -61,6 +61,10 @@ class AugmentSettings:
     """Which episodes get MEA: demos (the paper), successes, all (beyond the paper), none."""
     isometric_copies: int = 4
     """Rotated copies of every stored episode (Equi-RSAC: 4)."""
+    success_isometric_copies: int = 0
+    """Rotated copies of each successful episode (demonstrations, online successes) instead of
+    isometric_copies; 0: isometric_copies (the paper). Beyond the paper: successes are the few
+    episodes the policy clones, and a C4 network sees only their 90-degree turns for free."""
     isometric_on_mea: bool = True
     """Rotate all MEA copies of an episode by one shared random angle (G_t x G)."""
     reproject: bool = True
@@ -85,8 +89,14 @@ class AugmentSettings:
             raise ValueError(
                 f"observation 'depth' (the Equi-RSAC baseline) has no MEA: set mea_on 'none', not {self.mea_on!r}"
             )
-        if self.mea_copies < 0 or self.isometric_copies < 0:
+        if min(self.mea_copies, self.isometric_copies, self.success_isometric_copies) < 0:
             raise ValueError("copy counts must be >= 0")
+
+    def isometric_count(self, ep: Episode) -> int:
+        """How many rotated copies ``ep`` gets."""
+        if self.success_isometric_copies and bool(ep.terminated[-1]):
+            return self.success_isometric_copies
+        return self.isometric_copies
 
     def applies_mea(self, ep: Episode) -> bool:
         if self.mea_copies == 0 or self.mea_on == "none":
@@ -186,7 +196,7 @@ def _augment_depth(raw: Episode, s: AugmentSettings, seed: int) -> list[Episode]
     episode's policy images rotated by the copy's angle (drawn exactly as for voxel)."""
     codes = depth_policy_images(raw)
     out = [dataclasses.replace(raw, images=codes)]
-    for copy in isometric_copies(raw, s.isometric_copies, seed):
+    for copy in isometric_copies(raw, s.isometric_count(raw), seed):
         phi = float(copy.augmentation.params["rotation"][0])
         out.append(dataclasses.replace(copy, images=rotate_images(codes, phi)))
     return out
@@ -201,7 +211,7 @@ def augment_episode(raw: Episode, s: AugmentSettings) -> tuple[list[Episode], Au
         stats.outputs = len(out)
         stats.transitions = sum(e.num_steps for e in out)
         return out, stats
-    out = [raw, *isometric_copies(raw, s.isometric_copies, seed)]
+    out = [raw, *isometric_copies(raw, s.isometric_count(raw), seed)]
     if s.applies_mea(raw):
         made = []
         for copy, draw in mea_copies(raw, s.mea, s.mea_copies, seed):
