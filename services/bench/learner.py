@@ -40,6 +40,7 @@ from services.bench.transport import _client_bus, _get, _pct, _stop, _wait_alive
 from services.learner.core.batch import to_batch
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
+from services.learner.core.privileged import STATE_DIM
 from services.learner.core.replay import SequenceReplay, public_reference_bytes
 from services.learner.core.sac import RecurrentSAC
 from services.learner.main import PRESETS as LEARNER_PRESETS
@@ -51,7 +52,7 @@ CONSUMER = "bench-consumer"
 class LearnerBenchConfig:
     """Learner benchmark: updates/s per preset, replay bytes, weights publish -> loaded latency."""
 
-    variants: tuple[str, ...] = ("paper:c4", "paper:d4", "paper:none", "cpu-small:c4")
+    variants: tuple[str, ...] = ("paper:c4", "paper:d4", "paper:none", "cpu-small:c4", "cpu-small-state:c4")
     """preset:group pairs to time (preset sets widths and batch size; group c4, d4 or none)."""
     updates: int = 3
     """Timed updates per variant (after one warm-up update)."""
@@ -106,11 +107,14 @@ DEMO_STEPS = 16
 
 def bench_replay_contents(cfg: LearnerBenchConfig, rng: np.random.Generator) -> SequenceReplay:
     """A quarter of the episodes demonstration-like (16 steps, pinned), the rest 50-step online ones,
-    so presets that sample demonstrations or trim batches are timed on the batches they really see."""
-    replay = SequenceReplay(cfg.episodes * 50, seq_len=50, seed=cfg.seed)
+    so presets that sample demonstrations or trim batches are timed on the batches they really see.
+    Every episode carries privileged rows too, for presets whose critic reads the state."""
+    replay = SequenceReplay(cfg.episodes * 50, seq_len=50, seed=cfg.seed, state_dim=STATE_DIM)
     for k in range(cfg.episodes):
         demo = k < cfg.episodes // 4
-        replay.insert(random_episode(rng, k, DEMO_STEPS if demo else 50, is_demo=demo))
+        T = DEMO_STEPS if demo else 50
+        state = rng.standard_normal((T + 1, STATE_DIM)).astype(np.float32)
+        replay.insert(random_episode(rng, k, T, is_demo=demo), state)
     return replay
 
 
@@ -138,7 +142,7 @@ def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
         _log(f"{variant}: {per_update:.3f} s/update")
         rows.append({
             "variant": variant, "group": net.group, "batch (episodes)": batch_size,
-            "demo share": lc.demo_fraction, "trimmed": lc.trim_batches, "shared encoder": lc.sac.share_encoder,
+            "critic": net.critic_input, "demo share": lc.demo_fraction, "trimmed": lc.trim_batches, "shared encoder": lc.sac.share_encoder,
             "params (actor + critic)": sum(p.numel() for m in (sac.actor, sac.critic) for p in m.parameters()),
             "s/update (median)": per_update, "s/update (min)": min(update_s), "updates/s": 1.0 / per_update,
             "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),

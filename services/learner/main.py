@@ -60,6 +60,7 @@ from services.learner.core.batch import to_batch
 from services.learner.core.networks import PRESETS as NET_PRESETS
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import OBSERVATIONS, PolicySpec, actor_tensors
+from services.learner.core.privileged import STATE_DIM, episode_critic_state
 from services.learner.core.rate_limiter import SampleToInsertRatio
 from services.learner.core.replay import SequenceReplay
 from services.learner.core.sac import RecurrentSAC, SacSettings
@@ -144,6 +145,8 @@ class LearnerConfig:
             raise ValueError("replay_capacity must hold at least one episode (>= seq_len)")
         if not 0.0 <= self.demo_fraction <= 1.0:
             raise ValueError(f"demo_fraction must be in [0, 1], got {self.demo_fraction}")
+        if self.net.critic_input == "state" and self.sac.share_encoder:
+            raise ValueError("sac.share_encoder needs the image critic (net.critic_input image)")
         if self.samples_per_insert <= 0 or self.min_steps < 0 or self.error_buffer < 0:
             raise ValueError("samples_per_insert must be > 0, min_steps and error_buffer >= 0")
 
@@ -155,7 +158,7 @@ PRESETS = {
     # 1 (the replay gate lets actors run 2 steps per update). Additions, each a field: half of every
     # batch from the demonstration set (demos, their copies, online successes), a BC term, alpha from
     # 0.01, LayerNorm in the Q MLPs, one encoder shared by actor and critic, critic targets bounded
-    # below by the observed return; replay 120k holds a whole 20K-step run with its copies.
+    # below by the observed return; replay 200k holds a whole 20K-step run with its copies.
     "cpu-small": LearnerConfig(
         net=dataclasses.replace(NET_PRESETS["cpu-small"], critic_layer_norm=True, actor_prev_action=False),
         sac=SacSettings(init_alpha=0.01, bc_weight=2.0, share_encoder=True, return_bound=True),
@@ -163,7 +166,7 @@ PRESETS = {
         successes_as_demos=True,
         batch_size=8,
         samples_per_insert=0.5,
-        replay_capacity=120_000,
+        replay_capacity=200_000,
         min_steps=100,
         error_buffer=100.0,
         publish_every=5,
@@ -182,6 +185,16 @@ PRESETS = {
         checkpoint_minutes=0.0,
     ),
 }
+
+# cpu-small-state: cpu-small with a critic on the simulator's privileged state instead of images (an
+# asymmetric actor-critic: ``privileged.py``; the policy still reads images, and the critic is used
+# in simulation only). Same demo share, BC, temperature and return bound; no shared encoder (the
+# critic has none) and no critic LayerNorm (the state critic's MLPs have their own).
+PRESETS["cpu-small-state"] = dataclasses.replace(
+    PRESETS["cpu-small"],
+    net=dataclasses.replace(PRESETS["cpu-small"].net, critic_input="state", critic_layer_norm=False),
+    sac=dataclasses.replace(PRESETS["cpu-small"].sac, share_encoder=False),
+)
 
 
 def default_run_id(run_dir: Path) -> str:
@@ -262,6 +275,7 @@ class Learner:
             seq_len=cfg.seq_len,
             channels=cfg.net.in_channels,
             seed=cfg.seed,
+            state_dim=STATE_DIM if cfg.net.critic_input == "state" else 0,
         )
         self.limiter = SampleToInsertRatio(cfg.samples_per_insert, cfg.min_steps, cfg.error_buffer)
         self.spec = PolicySpec(cfg.net, cfg.observation)
@@ -289,8 +303,9 @@ class Learner:
     def ingest(self, ep: Episode) -> None:
         kind = "raw" if ep.augmentation is None else ep.augmentation.kind
         try:
+            state = episode_critic_state(ep) if self.replay.state_dim else None
             with self.lock:
-                self.replay.insert(ep)
+                self.replay.insert(ep, state)
                 if ep.augmentation is None:
                     self.limiter.inserted(ep.num_steps)
         except ValueError as exc:

@@ -56,6 +56,9 @@ class TinyCritic(nn.Module):
     def features(self, images: Tensor, prev_actions: Tensor, state: Tensor | None = None, obs_mask=None):
         return self.trunk(images, prev_actions, state)
 
+    def features_of(self, batch) -> Tensor:
+        return self.features(batch.images, batch.prev_actions)[0]
+
     def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
         x = torch.cat([features, actions], -1)
         return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)

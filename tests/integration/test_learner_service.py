@@ -15,7 +15,7 @@ from services.common.config import ServiceConfig
 from services.common.weights import WeightsClient
 from services.learner.core.policy import PolicyRuntime
 from services.learner.main import run
-from tests.helpers.learner import SIZE, learner_episode, tiny_learner_config
+from tests.helpers.learner import SIZE, TINY_NET, learner_episode, tiny_learner_config
 
 pytestmark = pytest.mark.integration
 
@@ -106,3 +106,31 @@ def test_learner_respects_the_ratio_publishes_versions_and_survives_bad_input(tm
     assert np.isfinite(last["critic_loss"])
     assert (tmp_path / "checkpoints" / "learner.pt").exists()  # written on shutdown
     assert (tmp_path / "learner.json").exists()
+
+
+def test_a_state_critic_learner_trains_on_privileged_rows_and_rejects_episodes_without_them(tmp_path):
+    net = dataclasses.replace(TINY_NET, critic_input="state", state_critic_hidden=(16,))
+    cfg = tiny_learner_config(
+        tmp_path, svc(), net=net, samples_per_insert=0.5, min_steps=10, error_buffer=5.0, max_updates=4
+    )
+    hub = Hub()
+    observer = InProcBus(hub)
+    status = observer.subscribe(STATUS, capacity=256, service="learner")
+    watch = observer.watch_alive("learner")
+    result: dict = {}
+    thread = threading.Thread(
+        target=lambda: result.setdefault("rc", run(cfg, bus_factory=lambda _c: InProcBus(hub))), daemon=True
+    )
+    thread.start()
+    assert watch.wait_for(lambda alive: ("learner", "learner-t") in alive, timeout=30)
+    # an episode whose producer did not say which object is immovable cannot feed the state critic
+    unknown = dataclasses.replace(learner_episode(90), episode_id="no-fixed-object")
+    observer.publish(EPISODES_AUGMENTED, unknown, source="augmenter-0")
+    for k in range(2):  # 20 steps -> 0.5 * 20 - (0.5 * 10 - 5) = 10 updates allowed, 4 wanted
+        ep = dataclasses.replace(learner_episode(k, T=10, demo=k == 0), fixed_object=k % 2)
+        observer.publish(EPISODES_AUGMENTED, ep, source="augmenter-0")
+    thread.join(timeout=60)
+    assert not thread.is_alive() and result["rc"] == 0
+    last = [d.message for d in status.drain()][-1].counters
+    assert last["updates"] == 4 and last["rejected"] == 1 and last["env_steps"] == 20
+    assert np.isfinite(last["critic_loss"])

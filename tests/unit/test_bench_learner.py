@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.bench.learner import same_threads_rows
+from services.bench.learner import LearnerBenchConfig, bench_updates, same_threads_rows
 
 PAPER = {"variant": "paper:c4", "s/update (median)": 2.0}
 
@@ -19,3 +19,14 @@ def test_the_public_figure_is_the_one_measured_at_the_same_thread_count(threads,
 def test_no_row_without_a_public_figure_or_a_paper_row():
     assert same_threads_rows(PAPER, 4) == []
     assert same_threads_rows(None, 1) == []
+
+
+def test_the_update_benchmark_runs_each_preset_on_the_batches_it_really_sees():
+    # cpu-small-state's critic reads privileged rows: the benchmark's replay must carry them
+    cfg = LearnerBenchConfig(variants=("cpu-small:c4", "cpu-small-state:c4"), updates=1, episodes=8)
+    rows = bench_updates(cfg)
+    assert [r["critic"] for r in rows] == ["image", "state"]
+    assert [r["shared encoder"] for r in rows] == [True, False]
+    for row in rows:
+        assert row["demo share"] == 0.5 and row["timed updates"] == 1
+        assert 0.0 < row["s/update (median)"] < 60.0

@@ -1,14 +1,19 @@
-"""The CPU recipe learns from a few demonstrations lost among many failures (CPU, about 30 s).
+"""The CPU recipes learn from a few demonstrations lost among many failures (CPU, about 10 s each).
 
 Three-step episodes whose every observation shows a cue c in {-1, +1} (one half of the image lit).
 Two demonstrations (one per cue) move dx = 0.8 c and succeed (reward 1 at the end); 300 online
-episodes act at random and never succeed. Trained with ``cpu-small``'s own settings (demo share,
-BC, temperature, critic LayerNorm, shared encoder, actor without a_{t-1}) through the real replay,
-batching and update, the policy's mean must follow the cue and its spread must have narrowed.
+episodes act at random and never succeed. Trained with each CPU preset's own settings (demo share,
+BC, temperature, return bound, actor without a_{t-1}; ``cpu-small``: critic LayerNorm and shared
+encoder; ``cpu-small-state``: a critic on privileged rows that hold the cue, as the simulator's
+state shows the layout) through the real replay, batching and update, the policy's mean must follow
+the cue and its spread must have narrowed.
 
 The test fails if demo-aware sampling is broken (uniform sampling puts a demonstration in one batch
-of about 19: the mean stays near 0) or if the temperature fields are (alpha from 0.1 keeps the
-spread wide: mean log std about -0.35 against about -0.7 here).
+of about 19: the mean stays near 0), and for ``cpu-small`` if
+the temperature fields are (alpha from 0.1 keeps the spread wide: mean log std about -0.35 against
+about -0.7 here; ``cpu-small-state`` has the same fields, and its BC term alone reaches the goal
+on this task whatever alpha or the critic does; the state critic is checked on its own in
+``test_privileged_state`` and ``test_sac_options``).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import torch
 from services.learner.core.batch import to_batch
 from services.learner.core.networks import build_actor, build_critic
 from services.learner.core.policy import images_from_codes
+from services.learner.core.privileged import STATE_DIM
 from services.learner.core.replay import SequenceReplay
 from services.learner.core.sac import RecurrentSAC
 from services.learner.main import PRESETS
@@ -56,19 +62,34 @@ def episode(rng: np.random.Generator, k: int, demo: bool, c: int | None = None):
     )  # fmt: skip
 
 
-def test_cpu_recipe_learns_the_demonstrated_action_among_failures():
-    preset = PRESETS["cpu-small"]
+def state_rows(c: int) -> np.ndarray:
+    """Privileged rows of an episode with cue c (``critic_state``'s layout, frame angle 0): the cue
+    where the movable object's x offset goes, as the simulator's state would show the layout."""
+    rows = np.zeros((T + 1, STATE_DIM), np.float32)
+    rows[:, 1] = c
+    return rows
+
+
+@pytest.mark.parametrize("preset_name", ["cpu-small", "cpu-small-state"])
+def test_cpu_recipe_learns_the_demonstrated_action_among_failures(preset_name: str):
+    preset = PRESETS[preset_name]
     net = dataclasses.replace(
         preset.net, image_size=SIZE, encoder=((2, 3, 1),), final_kernel=6, image_embed=16, action_embed=8,
         lstm_hidden=16, mlp_hidden=(16, 16),
     )  # fmt: skip
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
-    replay = SequenceReplay(5_000, image_size=SIZE, seq_len=T, seed=0)
-    replay.insert(episode(rng, 100_001, True, c=1))
-    replay.insert(episode(rng, 100_002, True, c=-1))
+    with_state = net.critic_input == "state"
+    replay = SequenceReplay(5_000, image_size=SIZE, seq_len=T, seed=0, state_dim=STATE_DIM * with_state)
+
+    def insert(k: int, demo: bool, c: int | None = None) -> None:
+        c = int(rng.choice([-1, 1])) if c is None else c
+        replay.insert(episode(rng, k, demo, c=c), state_rows(c) if with_state else None)
+
+    insert(100_001, True, c=1)
+    insert(100_002, True, c=-1)
     for k in range(300):
-        replay.insert(episode(rng, k, False))
+        insert(k, False)
     sac = RecurrentSAC(build_actor(net), build_critic(net), preset.sac)
     for _ in range(300):
         sample = replay.sample(

@@ -409,3 +409,67 @@ def test_nbytes_equals_reserved_bytes(
     assert replay.nbytes == SequenceReplay.reserved_bytes(capacity, size, seq_len, max_episodes=max_episodes)
     rows = capacity + replay.max_episodes + 1
     assert replay.nbytes >= rows * size * size  # at least the depth codes of every observation row
+
+
+# ------------------------------------------------------------------------------ privileged state
+
+
+def _with_state(ep: Episode, dim: int) -> np.ndarray:
+    """Rows that name their episode and step, so a gather from the wrong row shows."""
+    T = ep.num_steps
+    seed = int(ep.episode_id.split("-")[-1])
+    return (seed * 1000 + np.arange(T + 1)[:, None] + np.arange(dim)[None] / 100).astype(np.float32)
+
+
+def test_privileged_state_samples_back_beside_its_observations_and_survives_a_checkpoint() -> None:
+    dim = 3
+    replay = SequenceReplay(200, image_size=SIZE, seq_len=SEQ_LEN, seed=SEED, state_dim=dim)
+    eps = {}
+    for i in range(30):  # wraps around: evicted rows are reused
+        ep = make_episode(1 + i % SEQ_LEN, seed=i)
+        eps[ep.episode_id] = ep
+        replay.insert(ep, _with_state(ep, dim))
+    batch = replay.sample(16, np.random.default_rng(0))
+    assert batch.state.shape == (16, SEQ_LEN + 1, dim) and batch.state.dtype == np.float32
+    for b in range(16):
+        ep = eps[replay.episode_info(int(batch.episode_index[b]))["episode_id"]]
+        expected = _with_state(ep, dim)
+        np.testing.assert_array_equal(batch.state[b, : len(expected)], expected)
+        np.testing.assert_array_equal(batch.state[b, len(expected) :], 0.0)  # padding reads the zero row
+    restored = SequenceReplay.from_state_dict(_weights_only_round_trip(replay.state_dict()))
+    assert restored.state_dim == dim
+    assert_batches_equal(
+        replay.sample(16, np.random.default_rng(1)), restored.sample(16, np.random.default_rng(1))
+    )
+    plain = SequenceReplay(200, image_size=SIZE, seq_len=SEQ_LEN, seed=SEED)
+    with pytest.raises(ValueError, match="state_dim"):
+        plain.load_state_dict(replay.state_dict())
+
+
+@pytest.mark.parametrize(
+    ("state_dim", "rows"),
+    [(0, "given"), (3, None), (3, "short"), (3, "wide"), (3, "nan")],
+)
+def test_privileged_state_that_does_not_fit_is_refused_and_leaves_the_buffer_unchanged(
+    state_dim, rows
+) -> None:
+    replay = SequenceReplay(200, image_size=SIZE, seq_len=SEQ_LEN, seed=SEED, state_dim=state_dim)
+    ep = make_episode(5, seed=1)
+    state = {
+        "given": np.zeros((6, 3), np.float32),
+        None: None,
+        "short": np.zeros((5, 3), np.float32),
+        "wide": np.zeros((6, 4), np.float32),
+        "nan": np.full((6, 3), np.nan, np.float32),
+    }[rows]
+    with pytest.raises(ValueError, match="state"):
+        replay.insert(ep, state)
+    assert len(replay) == 0 and replay.stats()["transitions"] == 0
+
+
+def test_a_checkpoint_saved_before_privileged_state_existed_still_loads() -> None:
+    replay, _ = _filled_after_wraparound()
+    state = replay.state_dict()
+    del state["state"], state["state_dim"]
+    restored = SequenceReplay.from_state_dict(state)
+    assert restored.state_dim == 0 and restored.episode_ids() == replay.episode_ids()

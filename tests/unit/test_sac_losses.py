@@ -106,6 +106,9 @@ class ConstCritic(nn.Module):
         B, T = images.shape[:2]
         return torch.arange(T, dtype=torch.float32).expand(B, T)[..., None], None
 
+    def features_of(self, batch):
+        return self.features(batch.images, batch.prev_actions)[0]
+
     def q(self, features, actions):
         idx = features[..., 0].long()
         return self.q1v.gather(1, idx), self.q2v.gather(1, idx)

@@ -13,6 +13,7 @@ from services.learner.core.batch import to_batch
 from services.learner.core.equivariant import GroupLayerNorm
 from services.learner.core.groups import get_group, transform_actions, transform_images, transform_regular
 from services.learner.core.networks import NetConfig, build_actor, build_critic
+from services.learner.core.privileged import STATE_DIM
 from services.learner.core.replay import SequenceReplay
 from services.learner.core.sac import (
     Batch,
@@ -253,3 +254,29 @@ def test_actor_without_previous_action_ignores_it_and_stays_equivariant():
     torch.manual_seed(3)
     with_prev = build_actor(NET)
     assert not torch.allclose(with_prev(images, prev)[0], with_prev(images, torch.zeros_like(prev))[0])
+
+
+def test_a_state_critic_trains_from_the_batch_rows_and_the_actor_still_reads_images():
+    net = dataclasses.replace(NET, critic_input="state", state_critic_hidden=(16,))
+    actor, critic, _ = nets(net)
+    with pytest.raises(ValueError, match="share_encoder"):
+        RecurrentSAC(actor, critic, SacSettings(share_encoder=True))
+    replay = SequenceReplay(1_000, image_size=SIZE, seq_len=SEQ_LEN, seed=0, state_dim=STATE_DIM)
+    rng = np.random.default_rng(0)
+    for k in range(6):
+        ep = make_episode(3 + k, seed=k, demo=k < 2)
+        replay.insert(ep, rng.standard_normal((ep.num_steps + 1, STATE_DIM)).astype(np.float32))
+    batch = to_batch(replay.sample(4, np.random.default_rng(1)))
+    assert batch.state is not None and batch.state.shape == (4, batch.images.shape[1], STATE_DIM)
+    sac = RecurrentSAC(actor, critic, SacSettings())
+    before_actor = [p.detach().clone() for p in actor.encoder.parameters()]
+    before_critic = [p.detach().clone() for p in critic.parameters()]
+    info = sac.update(batch)
+    assert np.isfinite(info["critic_loss"]) and np.isfinite(info["actor_loss"])
+    assert any(not torch.equal(a, p) for a, p in zip(before_actor, actor.encoder.parameters(), strict=True))
+    assert all(not torch.equal(a, p) for a, p in zip(before_critic, critic.parameters(), strict=True))
+    # the state rows drive the critic: other rows, other targets
+    other = dataclasses.replace(batch, state=batch.state + 1.0)
+    with torch.no_grad():
+        a = torch.zeros_like(batch.actions)
+        assert not torch.allclose(critic.q(batch.state[:, :-1], a)[0], critic.q(other.state[:, :-1], a)[0])

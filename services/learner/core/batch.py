@@ -21,4 +21,5 @@ def to_batch(sample: SequenceBatch, device: torch.device | str = "cpu") -> Batch
         mask=torch.from_numpy(sample.mask).to(device, torch.float32),
         demo=torch.from_numpy(sample.from_demo_set).to(device, torch.float32),
         obs_mask=torch.from_numpy(sample.obs_mask).to(device),
+        state=torch.from_numpy(sample.state).to(device) if sample.state.shape[-1] else None,
     )

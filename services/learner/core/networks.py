@@ -44,11 +44,13 @@ from services.learner.core.equivariant import (
     LSTMState,
 )
 from services.learner.core.groups import ACTION_DIM, Group, get_group
+from services.learner.core.privileged import CANONICAL_ANGLE, STATE_DIM
 
-__all__ = ["PRESETS", "Actor", "Critic", "NetConfig", "build_actor", "build_critic"]
+__all__ = ["PRESETS", "Actor", "Critic", "NetConfig", "StateCritic", "build_actor", "build_critic"]
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 GROUP_NAMES = ("c4", "d4", "none")
+CRITIC_INPUTS = ("image", "state")
 PLAIN_FIELD_CHANNELS = 4
 """Channels per 'field' of the non-equivariant twin (matches the C4 channel counts)."""
 
@@ -82,10 +84,21 @@ class NetConfig:
     critic_layer_norm: bool = False
     """LayerNorm after each hidden linear layer of the Q MLPs (RLPD: bounds Q on actions the data
     never shows; per-field affine in the equivariant nets). Off in the paper's networks."""
+    critic_input: str = "image"
+    """What the critic reads: image (Equi-RSAC's recurrent image critic) or state (the simulator's
+    privileged state in a canonical frame, ``privileged.py``: an asymmetric actor-critic; training
+    in simulation only, the policy never reads it)."""
+    state_critic_hidden: tuple[int, ...] = (256, 256)
+    """Hidden widths of the state critic's Q MLPs (LayerNorm + ReLU after each)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "encoder", tuple(tuple(int(v) for v in layer) for layer in self.encoder))
         object.__setattr__(self, "mlp_hidden", tuple(int(v) for v in self.mlp_hidden))
+        object.__setattr__(self, "state_critic_hidden", tuple(int(v) for v in self.state_critic_hidden))
+        if self.critic_input not in CRITIC_INPUTS:
+            raise ValueError(f"critic_input must be one of {CRITIC_INPUTS}, got {self.critic_input!r}")
+        if not self.state_critic_hidden or min(self.state_critic_hidden) < 1:
+            raise ValueError(f"state_critic_hidden must be positive widths, got {self.state_critic_hidden}")
         if self.group not in GROUP_NAMES:
             raise ValueError(f"group must be one of {GROUP_NAMES}, got {self.group!r}")
         for name in (
@@ -148,6 +161,7 @@ class NetConfig:
         d = dataclasses.asdict(self)
         d["encoder"] = [list(layer) for layer in self.encoder]
         d["mlp_hidden"] = list(self.mlp_hidden)
+        d["state_critic_hidden"] = list(self.state_critic_hidden)
         return d
 
     @classmethod
@@ -403,9 +417,55 @@ class Critic(_Recurrent):
         h, emb, state = self.recurrent(images, prev_actions, state, obs_mask=obs_mask)
         return torch.cat([h, emb], dim=-1), state
 
+    def features_of(self, batch: Any) -> Tensor:
+        """``features`` of a SAC batch's sequences (B, L+1, feature_dim)."""
+        return self.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)[0]
+
     def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
         """features (..., feature_dim), actions (..., 5) -> (Q1, Q2), each (...)."""
         x = torch.cat([features, self.q_action_embed(actions)], dim=-1)
+        return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
+
+
+class StateCritic(nn.Module):
+    """Twin Q on the privileged state (``privileged.critic_state`` rows) and the action: plain MLPs
+    with LayerNorm. The rows are in a frame turned by their angle (column 0), so the action's
+    (dx, dy) is turned into it too: Q is then invariant under any rotation about z and horizontal
+    translation of scene and action together (the symmetry the equivariant critic has for C4 only)."""
+
+    def __init__(self, cfg: NetConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.feature_dim = STATE_DIM
+
+        def mlp() -> nn.Sequential:
+            layers: list[nn.Module] = []
+            width = STATE_DIM - 1 + ACTION_DIM
+            for hidden in cfg.state_critic_hidden:
+                layers += [_plain_init(nn.Linear(width, hidden), _RELU_GAIN), nn.LayerNorm(hidden), nn.ReLU()]
+                width = hidden
+            return nn.Sequential(*layers, _plain_init(nn.Linear(width, 1), 1.0))
+
+        self.q1, self.q2 = mlp(), mlp()
+
+    def features_of(self, batch: Any) -> Tensor:
+        """The batch's privileged rows (B, L+1, STATE_DIM); ValueError if it carries none."""
+        if batch.state is None or batch.state.shape[-1] != STATE_DIM:
+            got = None if batch.state is None else tuple(batch.state.shape)
+            raise ValueError(
+                f"state: the state critic needs (B, L+1, {STATE_DIM}) privileged rows, got {got}"
+            )
+        return batch.state
+
+    def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
+        """features (..., STATE_DIM), actions (..., 5) -> (Q1, Q2), each (...)."""
+        phi = features[..., CANONICAL_ANGLE]
+        c, s = torch.cos(phi), torch.sin(phi)
+        dx, dy = actions[..., 1], actions[..., 2]
+        turned = torch.stack(
+            [actions[..., 0], c * dx + s * dy, -s * dx + c * dy, actions[..., 3], actions[..., 4]], -1
+        )
+        x = torch.cat([features[..., CANONICAL_ANGLE + 1 :], turned], dim=-1)
         return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
 
 
@@ -413,5 +473,5 @@ def build_actor(cfg: NetConfig) -> Actor:
     return Actor(cfg)
 
 
-def build_critic(cfg: NetConfig) -> Critic:
-    return Critic(cfg)
+def build_critic(cfg: NetConfig) -> Critic | StateCritic:
+    return StateCritic(cfg) if cfg.critic_input == "state" else Critic(cfg)

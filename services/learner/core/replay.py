@@ -8,7 +8,9 @@ Why this layout (tasks-and-baselines.md §8 P4): the public code keeps float32 `
 * a channel that is constant over the image (the tiled jaw code, channel 1 of
   ``services.augmenter.core.projection.quantized_observations``) is stored as one byte per
   observation and re-tiled by the consumer (``SequenceBatch.images_uint8``);
-* actions float32 (T, 5), rewards float32, ``terminated``/``truncated`` bool.
+* actions float32 (T, 5), rewards float32, ``terminated``/``truncated`` bool;
+* optionally ``state_dim`` float32 per observation: the privileged state a state critic reads
+  (``services.learner.core.privileged``), given beside the episode at insert.
 
 Storage is preallocated once as a flat arena of rows, one row per observation (the transition
 fields of an episode's last row are unused and never read), plus one all-zero row that padding points at. An
@@ -110,6 +112,8 @@ class SequenceBatch:
     """Channel index in the full image of each ``image_codes`` channel."""
     constant_channels: tuple[int, ...]
     """Channel index in the full image of each ``constant`` entry."""
+    state: np.ndarray
+    """float32 (B, L+1, state_dim): privileged state per observation (state_dim may be 0)."""
 
     @property
     def batch_size(self) -> int:
@@ -135,6 +139,7 @@ def _layout(
     channels: int,
     constant_channels: Sequence[int],
     max_episodes: int,
+    state_dim: int = 0,
 ) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
     """Shape and dtype of every preallocated array (one source for allocation and ``reserved_bytes``)."""
     rows = capacity_transitions + max_episodes + 1  # every episode's T+1 observations, + the zero row
@@ -148,6 +153,7 @@ def _layout(
         "rewards": ((rows,), np.dtype(np.float32)),
         "terminated": ((rows,), np.dtype(np.bool_)),
         "truncated": ((rows,), np.dtype(np.bool_)),
+        "state": ((rows, state_dim), np.dtype(np.float32)),
         "free_rows": ((rows - 1,), index),
         "ep_rows": ((E, L + 1), index),
         "ep_length": ((E,), np.dtype(np.int32)),
@@ -175,6 +181,7 @@ class SequenceReplay:
         channels: channels of the policy image.
         max_episodes: stored episodes at most (default ``ceil(capacity / 4)``).
         seed: seed of the generator ``sample`` uses when given no ``rng``.
+        state_dim: privileged state floats per observation that ``insert`` requires (0: none).
     """
 
     def __init__(
@@ -186,21 +193,28 @@ class SequenceReplay:
         channels: int = 2,
         max_episodes: int | None = None,
         seed: int | None = None,
+        state_dim: int = 0,
     ) -> None:
         const = tuple(int(c) for c in constant_channels)
         cfg = _check_config(capacity_transitions, image_size, seq_len, const, channels, max_episodes)
         self.capacity_transitions, self.image_size, self.seq_len, self.channels, self.max_episodes = cfg
+        if int(state_dim) != state_dim or state_dim < 0:
+            raise ValueError(f"state_dim must be a non-negative integer, got {state_dim!r}")
+        self.state_dim = int(state_dim)
         self.constant_channels = const
         self.code_channels = tuple(c for c in range(channels) if c not in const)
         self._rng = np.random.default_rng(seed)
         self._arrays = {
             name: np.zeros(shape, dtype)
-            for name, (shape, dtype) in _layout(*self._config_tuple(), self.max_episodes).items()
+            for name, (shape, dtype) in _layout(
+                *self._config_tuple(), self.max_episodes, self.state_dim
+            ).items()
         }
         a = self._arrays
         self._codes, self._const = a["codes"], a["constant"]
         self._actions, self._rewards = a["actions"], a["rewards"]
         self._terminated, self._truncated = a["terminated"], a["truncated"]
+        self._state = a["state"]
         self._free_rows, self._free_slots, self._order = a["free_rows"], a["free_slots"], a["order"]
         self._ep_rows, self._ep_length, self._ep_serial = a["ep_rows"], a["ep_length"], a["ep_serial"]
         self._ep_demo, self._ep_kind, self._ep_success = a["ep_demo"], a["ep_kind"], a["ep_success"]
@@ -218,13 +232,14 @@ class SequenceReplay:
         constant_channels: Iterable[int] = (1,),
         channels: int = 2,
         max_episodes: int | None = None,
+        state_dim: int = 0,
     ) -> int:
         """Bytes the arrays of such a buffer reserve, computed without allocating (equals ``nbytes``)."""
         const = tuple(int(c) for c in constant_channels)
         cap, size, L, C, E = _check_config(
             capacity_transitions, image_size, seq_len, const, channels, max_episodes
         )
-        layout = _layout(cap, size, L, C, const, E)
+        layout = _layout(cap, size, L, C, const, E, int(state_dim))
         return sum(math.prod(shape) * dtype.itemsize for shape, dtype in layout.values())
 
     @property
@@ -281,13 +296,15 @@ class SequenceReplay:
 
     # ---------------------------------------------------------------- insert
 
-    def insert(self, ep: Episode) -> int:
+    def insert(self, ep: Episode, state: np.ndarray | None = None) -> int:
         """Store ``ep`` (with uint8 ``images``), evicting old non-demo episodes; returns its transitions.
+        ``state``: (T+1, state_dim) privileged rows, required iff the buffer has a ``state_dim``.
 
         Raises ``ValueError`` naming the offending field if the episode does not match the buffer's
         configuration, or if it cannot fit beside the pinned demonstrations; the buffer is then unchanged.
         """
         T, codes, const = self._checked_arrays(ep)
+        state = self._checked_state(T, state)
         aug = ep.augmentation
         kind = RAW_KIND if aug is None else str(aug.kind)
         source = ep.episode_id if aug is None else str(aug.source_episode_id)
@@ -307,7 +324,7 @@ class SequenceReplay:
             self._evict_oldest_unpinned()
         if kind not in self._kind_names:
             self._kind_names.append(kind)
-        self._store(T, codes, const, ep.actions, ep.rewards, ep.terminated, ep.truncated)
+        self._store(T, codes, const, ep.actions, ep.rewards, ep.terminated, ep.truncated, state)
         self._set_episode_meta(self._n - 1, str(ep.episode_id), source, self._kind_names.index(kind), demo)
         return T
 
@@ -341,6 +358,18 @@ class SequenceReplay:
             )
         return T, images[:, list(self.code_channels)], const
 
+    def _checked_state(self, T: int, state: np.ndarray | None) -> np.ndarray:
+        if self.state_dim == 0:
+            if state is not None:
+                raise ValueError("state: this replay stores no privileged state (state_dim 0)")
+            return np.zeros((T + 1, 0), np.float32)
+        if state is None:
+            raise ValueError(f"state: this replay needs {self.state_dim} privileged floats per observation")
+        state = np.asarray(state, np.float32)
+        if state.shape != (T + 1, self.state_dim) or not np.isfinite(state).all():
+            raise ValueError(f"state: expected finite ({T + 1}, {self.state_dim}), got {state.shape}")
+        return state
+
     def _store(
         self,
         T: int,
@@ -350,6 +379,7 @@ class SequenceReplay:
         rewards: np.ndarray,
         terminated: np.ndarray,
         truncated: np.ndarray,
+        state: np.ndarray,
     ) -> None:
         """Write one episode into free rows and a free slot appended to the insertion order."""
         top = self._n_free_rows
@@ -357,6 +387,7 @@ class SequenceReplay:
         self._n_free_rows = top - (T + 1)
         self._codes[rows] = codes
         self._const[rows] = const
+        self._state[rows] = state
         self._actions[rows[:T]] = actions
         self._rewards[rows[:T]] = rewards
         self._terminated[rows[:T]] = terminated
@@ -483,6 +514,7 @@ class SequenceReplay:
             from_demo_set=self._in_demo_set(slots, successes_as_demos),
             code_channels=self.code_channels,
             constant_channels=self.constant_channels,
+            state=self._state[rows],
         )
 
     # ---------------------------------------------------------------- checkpoints
@@ -506,7 +538,9 @@ class SequenceReplay:
             "channels": self.channels,
             "constant_channels": list(self.constant_channels),
             "max_episodes": self.max_episodes,
+            "state_dim": self.state_dim,
             "lengths": lengths.copy(),
+            "state": self._state[obs_rows],
             "image_codes": self._codes[obs_rows],
             "constant": self._const[obs_rows],
             "actions": self._actions[trans_rows],
@@ -543,13 +577,17 @@ class SequenceReplay:
             raise ValueError(
                 f"format: expected replay state format {STATE_FORMAT}, got {state.get('format')}"
             )
+        if int(state.get("state_dim", 0)) != self.state_dim:
+            raise ValueError(f"state_dim: saved {state.get('state_dim', 0)}, this buffer's {self.state_dim}")
         if saved != mine:
             raise ValueError(
                 f"state_dict configuration (capacity, image_size, seq_len, channels, constant_channels, "
                 f"max_episodes)={saved} differs from this buffer's {mine}"
             )
         lengths = np.asarray(state["lengths"], np.int32).reshape(-1)
-        arrays = _checked_state_arrays(state, lengths, self._codes.shape[1:], self._const.shape[1:])
+        arrays = _checked_state_arrays(
+            state, lengths, self._codes.shape[1:], self._const.shape[1:], self.state_dim
+        )
         n, total_t = lengths.size, int(lengths.sum())
         if total_t > self.capacity_transitions or n > self.max_episodes or (lengths < 1).any():
             raise ValueError(f"lengths: {n} episodes of {total_t} transitions do not fit this buffer")
@@ -558,6 +596,7 @@ class SequenceReplay:
         trans_rows = self._ep_rows[:n, : self.seq_len][np.arange(self.seq_len) < lengths[:, None]]
         self._codes[obs_rows] = arrays["image_codes"]
         self._const[obs_rows] = arrays["constant"]
+        self._state[obs_rows] = arrays["state"]
         for name in ("actions", "rewards", "terminated", "truncated"):
             self._arrays[name][trans_rows] = arrays[name]
         self._ep_serial[:n] = arrays["serial"]
@@ -594,6 +633,7 @@ class SequenceReplay:
             constant_channels=[int(c) for c in state["constant_channels"]],
             channels=int(state["channels"]),
             max_episodes=int(state["max_episodes"]),
+            state_dim=int(state.get("state_dim", 0)),
         )
         replay.load_state_dict(state)
         return replay
@@ -661,7 +701,11 @@ def _check_config(
 
 
 def _checked_state_arrays(
-    state: dict[str, Any], lengths: np.ndarray, code_shape: tuple[int, ...], const_shape: tuple[int, ...]
+    state: dict[str, Any],
+    lengths: np.ndarray,
+    code_shape: tuple[int, ...],
+    const_shape: tuple[int, ...],
+    state_dim: int,
 ) -> dict[str, np.ndarray]:
     n, n_obs, n_trans = lengths.size, int((lengths + 1).sum()), int(lengths.sum())
     expected = {
@@ -674,10 +718,12 @@ def _checked_state_arrays(
         "serial": ((n,), np.int64),
         "is_demo": ((n,), np.bool_),
         "kind": ((n,), np.int16),
+        "state": ((n_obs, state_dim), np.float32),
     }
     out = {}
     for name, (shape, dtype) in expected.items():
-        arr = np.asarray(state[name])
+        # a state saved before privileged rows existed has none: the empty (n_obs, 0) array
+        arr = np.asarray(state[name]) if name in state or state_dim else np.zeros((n_obs, 0), np.float32)
         if arr.shape != shape or arr.dtype != dtype:
             raise ValueError(
                 f"{name}: expected {np.dtype(dtype).name} {shape}, got {arr.dtype.name} {arr.shape}"

@@ -55,6 +55,7 @@ class Batch:
     mask: Tensor  # (B, L) float, 1 on real transitions
     demo: Tensor | None = None  # (B,) float, 1 for demonstrations (and their copies); for the BC term
     obs_mask: Tensor | None = None  # (B, L+1) bool, real observations; padded ones skip the encoders
+    state: Tensor | None = None  # (B, L+1, S) privileged state per observation, for a state critic
 
     @property
     def prev_actions(self) -> Tensor:
@@ -195,7 +196,7 @@ def critic_targets(
 ) -> Tensor:  # fmt: skip
     """y_t (B, L), without gradient."""
     with torch.no_grad():
-        feats, _ = critic_target.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
+        feats = critic_target.features_of(batch)
         q1, q2 = critic_target.q(feats[:, 1:], policy.actions[:, 1:].detach())
         soft_v = torch.min(q1, q2) - alpha * policy.log_probs[:, 1:].detach()
         return n_step_targets(batch.rewards, batch.terminated, batch.mask, soft_v, gamma, n_step)
@@ -212,7 +213,7 @@ def critic_loss(
     """Twin-Q regression onto ``targets``. Returns (loss, features of all L+1 steps, info).
     ``feats``: the critic's features of this batch if already computed (with gradients)."""
     if feats is None:
-        feats, _ = critic.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
+        feats = critic.features_of(batch)
     q1, q2 = critic.q(feats[:, :-1], batch.actions)
     loss = masked_mean((q1 - targets).pow(2), batch.mask) + masked_mean((q2 - targets).pow(2), batch.mask)
     info = {"q1": masked_mean(q1.detach(), batch.mask), "q2": masked_mean(q2.detach(), batch.mask)}
@@ -278,6 +279,8 @@ class RecurrentSAC:
         self.actor, self.critic = actor, critic
         self.critic_target = copy.deepcopy(critic).requires_grad_(False)
         self.log_alpha = torch.tensor(math.log(settings.init_alpha), requires_grad=True)
+        if settings.share_encoder and not hasattr(critic, "encoder"):
+            raise ValueError("share_encoder needs a critic with an image encoder (not the state critic)")
         if settings.share_encoder:
             actor.encoder = critic.encoder  # trained by the critic's loss only
         shared = {id(p) for p in critic.parameters()}
