@@ -34,6 +34,19 @@ def wait_for(pred, timeout: float, what: str):
     raise AssertionError(f"timed out waiting for {what}")
 
 
+def start_learner(cfg, hub: Hub, observer: InProcBus) -> tuple[threading.Thread, dict]:
+    """Run the learner on ``hub`` in a thread; return once ``observer`` sees it alive. The thread's
+    exit code lands in the dict under "rc"."""
+    watch = observer.watch_alive("learner")
+    result: dict = {}
+    thread = threading.Thread(
+        target=lambda: result.setdefault("rc", run(cfg, bus_factory=lambda _c: InProcBus(hub))), daemon=True
+    )
+    thread.start()
+    assert watch.wait_for(lambda alive: ("learner", "learner-t") in alive, timeout=30)
+    return thread, result
+
+
 def test_learner_respects_the_ratio_publishes_versions_and_survives_bad_input(tmp_path):
     # spi 0.5, min 20 steps, error buffer 5: updates allowed = 0.5 * steps - (0.5 * 20 - 5) = 0.5 * steps - 5
     cfg = tiny_learner_config(
@@ -44,13 +57,7 @@ def test_learner_respects_the_ratio_publishes_versions_and_survives_bad_input(tm
     announces = observer.subscribe(WEIGHTS_ANNOUNCE, capacity=256)
     gates = observer.subscribe(REPLAY_GATE, capacity=4096)
     status = observer.subscribe(STATUS, capacity=256, service="learner")
-    watch = observer.watch_alive("learner")
-    result: dict = {}
-    thread = threading.Thread(
-        target=lambda: result.setdefault("rc", run(cfg, bus_factory=lambda _c: InProcBus(hub))), daemon=True
-    )
-    thread.start()
-    assert watch.wait_for(lambda alive: ("learner", "learner-t") in alive, timeout=30)
+    thread, result = start_learner(cfg, hub, observer)
     seen_gates: list = []
 
     def latest_gate():
@@ -116,13 +123,7 @@ def test_a_state_critic_learner_trains_on_privileged_rows_and_rejects_episodes_w
     hub = Hub()
     observer = InProcBus(hub)
     status = observer.subscribe(STATUS, capacity=256, service="learner")
-    watch = observer.watch_alive("learner")
-    result: dict = {}
-    thread = threading.Thread(
-        target=lambda: result.setdefault("rc", run(cfg, bus_factory=lambda _c: InProcBus(hub))), daemon=True
-    )
-    thread.start()
-    assert watch.wait_for(lambda alive: ("learner", "learner-t") in alive, timeout=30)
+    thread, result = start_learner(cfg, hub, observer)
     # an episode whose producer did not say which object is immovable cannot feed the state critic
     unknown = dataclasses.replace(learner_episode(90), episode_id="no-fixed-object")
     observer.publish(EPISODES_AUGMENTED, unknown, source="augmenter-0")
