@@ -7,7 +7,7 @@ import time
 import numpy as np
 
 from proto.episode import Episode
-from services.actor.tasks.env import Observation
+from services.tasks.env import Observation
 
 
 class EpisodeBuilder:

@@ -30,22 +30,22 @@ from pathlib import Path
 
 import numpy as np
 
+from proto.seeds import ACTOR_SEED_STRIDE, actor_seed_base
 from proto.topics import EPISODES_RAW, REPLAY_GATE
 from services.actor.episodes import EpisodeBuilder
-from services.actor.tasks import EXPERT_STYLES, TASKS, EnvSettings, ManipulationEnv, make_env
-from services.actor.tasks.camera import CameraSettings
-from services.actor.tasks.env import Observation
-from services.augmenter.core.depth_image import policy_images as depth_policy_images
-from services.augmenter.core.projection import segment_policy_images
 from services.common import config
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
 from services.common.replay_gate import GateTracker
 from services.common.runtime import ServiceContext
 from services.common.weights import WeightsClient
+from services.observation.depth_image import policy_images as depth_policy_images
+from services.observation.projection import segment_policy_images
+from services.tasks import EXPERT_STYLES, TASKS, EnvSettings, ManipulationEnv, make_env
+from services.tasks.camera import CameraSettings
+from services.tasks.env import Observation
 
 log = logging.getLogger(__name__)
-SEED_STRIDE = 1_000_000
 POLICIES = ("expert", "random", "learned")
 
 
@@ -111,7 +111,7 @@ def policy_input(obs: Observation, observation: str) -> np.ndarray:
     """The learned policy's input for ``observation`` ("voxel" or "depth"), uint8 (2, 84, 84).
 
     ``voxel``: ``policy_image(obs)``. ``depth``: the rendered depth image's codes + jaw
-    (``services.augmenter.core.depth_image.policy_images``), taken through float16 first, as the
+    (``services.observation.depth_image.policy_images``), taken through float16 first, as the
     published episode stores it, so the input is bit-identical to what the augmenter attaches for
     the learner. Needs ``obs.depth_image`` (an env with ``depth_image=True``); ValueError otherwise.
     """
@@ -183,7 +183,7 @@ class Actor:
         self.rng = np.random.default_rng([cfg.seed_base, cfg.index, 17])
 
     def next_seed(self) -> int:
-        seed = self.cfg.seed_base + self.cfg.index * SEED_STRIDE + self.counter
+        seed = self.cfg.seed_base + self.cfg.index * ACTOR_SEED_STRIDE + self.counter
         self.counter += 1
         return seed
 
@@ -290,7 +290,7 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
         if cfg.policy == "learned":
             from services.learner.core.policy import PolicyRuntime  # torch: only for learned actors
 
-            policy = PolicyRuntime(deterministic=False, seed=cfg.seed_base + cfg.index * SEED_STRIDE)
+            policy = PolicyRuntime(deterministic=False, seed=cfg.seed_base + cfg.index * ACTOR_SEED_STRIDE)
 
         def on_step(seconds: float) -> None:
             counts["env_steps"] += 1
@@ -352,7 +352,7 @@ def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
     training seed repeats (run seed s, resume r: s * 1e8 + r * 1e5; evaluation seeds are >= 1e9)."""
     policy = "learned" if "learner" in run_cfg.services else "random"
     args = ["--task", run_cfg.task, "--index", str(index), "--policy", policy,
-            "--seed-base", str(run_cfg.seed * 10**8 + run_cfg.resumes * 10**5)]  # fmt: skip
+            "--seed-base", str(actor_seed_base(run_cfg.seed, run_cfg.resumes))]  # fmt: skip
     if index == 0 and run_cfg.demos and run_cfg.resume is None:
         args += ["--demos", str(run_cfg.demos)]
     if run_cfg.variant == "equirsac":

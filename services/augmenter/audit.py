@@ -80,7 +80,7 @@ from services.augmenter.core.isometric import isometric_copy
 from services.augmenter.core.mea import MeaSettings
 
 if TYPE_CHECKING:  # the env (pybullet) is imported only where the CLI builds one
-    from services.actor.tasks.env import ManipulationEnv, Observation
+    from services.tasks.env import ManipulationEnv, Observation
 
 PHASES = ("non_trivial", "trivial", "termination")
 NON_TRIVIAL, TRIVIAL, TERMINATION = range(3)

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:  # pybullet is imported only where an env exists
-    from services.actor.tasks.env import ManipulationEnv
+    from services.tasks.env import ManipulationEnv
 
 ANGLES_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
 CLEAR_SPOT = (1.5, 0.0)  # m: on the floor, far from the arm and the workspace's other objects

@@ -38,12 +38,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from proto.actions import DELTA_THETA
 from proto.episode import Episode
 from services.augmenter.core.isometric import WORKSPACE_CENTRE, cos_sin, rotate_points
-from services.augmenter.core.mea import DELTA_THETA
 
 if TYPE_CHECKING:  # pybullet is imported only where an env exists
-    from services.actor.tasks.env import ManipulationEnv, Observation
+    from services.tasks.env import ManipulationEnv, Observation
 
 SETTLE_STEPS = 10  # physics steps env.reset lets the world rest after placing the arm; mirrored here
 RESAMPLE_SALT = 0x5EED_A0D1  # offsets the replay's point-sampling stream from the recorded one
@@ -123,7 +123,7 @@ def plan_placement(env: ManipulationEnv, aug: Episode) -> Placement:
     phi = rotation_of(aug)
     if phi == 0.0:
         return Placement(0.0, np.zeros(2), aug)
-    from services.actor.tasks.robot import WORKSPACE, YAW_LIMIT
+    from services.tasks.robot import WORKSPACE, YAW_LIMIT
 
     turn = yaw_branch(aug, YAW_LIMIT)
     if turn is None:

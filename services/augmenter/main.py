@@ -66,7 +66,7 @@ import numpy as np
 from proto.episode import Episode
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW
 from services.augmenter.core.mea import augment
-from services.augmenter.core.pipeline import AugmentSettings, augment_episode
+from services.augmenter.core.pipeline import AugmentSettings, augment_episode, mea_copy_rng
 from services.common import config
 from services.common.bus.base import Bus, Subscription
 from services.common.config import ServiceConfig
@@ -76,9 +76,6 @@ from services.common.runtime import ServiceContext, subscribing_bus_factory
 log = logging.getLogger(__name__)
 
 MEA_KINDS = ("mea", "mea+isometric")
-MEA_RNG_OFFSET = 1_000_001
-"""MEA copy k of a source episode draws from ``default_rng([seed, MEA_RNG_OFFSET + k])`` (the pipeline's
-convention; the audit regenerates the un-rotated copy from it)."""
 
 AuditFn = Callable[[Episode, Episode], np.ndarray]
 """``audit(copy, source) -> (T,) bool``: which transitions of the MEA copy the physics reproduces."""
@@ -210,8 +207,8 @@ class PhysicsAudit:
         key = (copy.task, int(copy.points.shape[2]))
         env = self._envs.get(key)
         if env is None:
-            from services.actor.tasks import EnvSettings, make_env
-            from services.actor.tasks.camera import CameraSettings
+            from services.tasks import EnvSettings, make_env
+            from services.tasks.camera import CameraSettings
 
             env = make_env(copy.task, EnvSettings(camera=CameraSettings(points_per_segment=key[1])))
             self._envs[key] = env
@@ -305,7 +302,7 @@ class Auditor:
         aug = copy.augmentation
         if aug.kind == "mea":
             return copy
-        rng = np.random.default_rng([aug.seed, MEA_RNG_OFFSET + aug.copy_index])
+        rng = mea_copy_rng(aug.seed, aug.copy_index)
         again, _ = augment(source, self.settings.mea, rng, seed=aug.seed, copy_index=aug.copy_index,
                            episode_id=copy.episode_id)  # fmt: skip
         return again

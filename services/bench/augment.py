@@ -40,10 +40,10 @@ from typing import Any
 
 import numpy as np
 
+from proto.actions import DELTA_THETA, DELTA_XYZ
 from proto.episode import Episode
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW
 from services.augmenter.core.isometric import compose_with_mea
-from services.augmenter.core.mea import DELTA_THETA, DELTA_XYZ
 from services.augmenter.core.pipeline import (
     AugmentSettings,
     augment_episode,

@@ -53,7 +53,7 @@ def _log(msg: str) -> None:
 
 def raw_sim_main(task: str, index: int, seconds: float, results) -> None:
     try:
-        from services.actor.tasks import EnvSettings, make_env
+        from services.tasks import EnvSettings, make_env
 
         env = make_env(task, EnvSettings())
         rng = np.random.default_rng(index)

@@ -38,7 +38,7 @@ class TasksBenchConfig:
 
 
 def _expert_job(task: str, style: str, episodes: int, seed_base: int) -> dict:
-    from services.actor.tasks import make_env
+    from services.tasks import make_env
 
     env = make_env(task)
     success = touched = steps = 0
@@ -72,8 +72,8 @@ def _fixed_name(env) -> str:
 
 
 def _prior_job(task: str, episodes: int, seed_base: int) -> dict:
-    from services.actor.tasks import make_env
-    from services.actor.tasks.prior import measure, summarise
+    from services.tasks import make_env
+    from services.tasks.prior import measure, summarise
 
     env = make_env(task)
     samples = []

@@ -55,12 +55,11 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from proto.control import EvalReport
+from proto.seeds import EVAL_SEED_BASE
 from proto.topics import EVAL_REPORTS, REPLAY_GATE
 from proto.weights import WeightsBlob
 from services.actor.episodes import EpisodeBuilder
 from services.actor.main import policy_input, run_episode
-from services.actor.tasks import TASKS, EnvSettings, ManipulationEnv, make_env
-from services.actor.tasks.camera import CameraSettings
 from services.common import config
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
@@ -76,6 +75,8 @@ from services.evaluator.core.metrics import (
     run_improvement_timestep,
     summarize,
 )
+from services.tasks import TASKS, EnvSettings, ManipulationEnv, make_env
+from services.tasks.camera import CameraSettings
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +96,7 @@ class EvaluatorConfig:
     """Evaluate the newest version once the learner's env steps advanced by this much since the last
     evaluation (Equi-RSAC: 250 for Pull and Drawer, 500 for Pick). The first version is evaluated as
     soon as it exists."""
-    seed_base: int = 1_000_000_000
+    seed_base: int = EVAL_SEED_BASE
     """First held-out seed: every evaluation runs seeds seed_base .. seed_base + M - 1, so versions are
     compared on the same episodes (actors' seeds stay below 1e9)."""
     run_dir: Path | None = None

@@ -26,6 +26,7 @@ from hypothesis.extra import numpy as hnp
 
 import proto
 from proto import codec
+from proto.actions import ACTION_DIM
 from proto.codec import (
     DEFAULT_LIMITS,
     EXT_NDARRAY,
@@ -46,7 +47,7 @@ from proto.codec import (
     unpack,
 )
 from proto.control import SERVICES, STATES, EvalReport, Heartbeat, ReplayGate
-from proto.episode import ACTION_DIM, AUGMENTATION_KINDS, POLICY_KINDS, TASKS, Augmentation, Episode
+from proto.episode import AUGMENTATION_KINDS, POLICY_KINDS, TASKS, Augmentation, Episode
 from proto.weights import ALGORITHMS, WeightsAnnouncement, WeightsBlob, tensors_digest
 
 pytestmark = pytest.mark.contract

@@ -13,8 +13,9 @@ import threading
 
 import numpy as np
 
+from proto.actions import ACTION_DIM
 from proto.codec import Message, pack
-from proto.episode import ACTION_DIM, Episode
+from proto.episode import Episode
 from proto.weights import WeightsBlob
 
 SEGMENTS = ("gripper", "object_0", "object_1")

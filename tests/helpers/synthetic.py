@@ -10,8 +10,8 @@ import math
 
 import numpy as np
 
+from proto.actions import DELTA_THETA, DELTA_XYZ
 from proto.episode import Episode
-from services.augmenter.core.mea import DELTA_THETA, DELTA_XYZ
 
 
 class SyntheticWorld:

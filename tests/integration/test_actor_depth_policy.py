@@ -17,13 +17,13 @@ from proto.episode import Episode
 from proto.topics import EPISODES_RAW
 from proto.weights import WeightsBlob
 from services.actor.main import ActorConfig, policy_image, policy_input, run
-from services.actor.tasks.env import Observation
 from services.augmenter.core.pipeline import AugmentSettings, augment_episode
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsServer
 from services.learner.core.networks import PRESETS, build_actor
 from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
+from services.tasks.env import Observation
 
 pytestmark = pytest.mark.integration
 

@@ -105,7 +105,7 @@ def test_learned_actor_acts_with_broadcast_weights_and_waits_for_the_replay_gate
     # same weights and seed reproduces them
     runtime = PolicyRuntime(deterministic=False, seed=cfg.seed_base + cfg.index * 1_000_000)
     runtime.load(blob)
-    from services.actor.tasks.env import Observation
+    from services.tasks.env import Observation
 
     for t in range(3):
         obs = Observation(ep.points[t], ep.point_counts[t], float(ep.jaw[t]), ep.gripper_pose[t],

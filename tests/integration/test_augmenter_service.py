@@ -14,16 +14,16 @@ from proto.episode import Episode
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW, STATUS
 from services.augmenter.core.mea import augment
 from services.augmenter.core.pipeline import AugmentSettings, augment_episode, episode_seed
-from services.augmenter.core.projection import (
+from services.augmenter.main import Auditor, AugmenterConfig, output_kind, run, shard_of
+from services.common.bus import Hub, InProcBus
+from services.common.config import ServiceConfig
+from services.common.metrics import ServiceMetrics
+from services.observation.projection import (
     observation_channels,
     project_batch,
     quantize,
     segments_to_points,
 )
-from services.augmenter.main import Auditor, AugmenterConfig, output_kind, run, shard_of
-from services.common.bus import Hub, InProcBus
-from services.common.config import ServiceConfig
-from services.common.metrics import ServiceMetrics
 from tests.helpers import BASE_TIME
 from tests.helpers.synthetic import synthetic_episode
 

@@ -194,7 +194,7 @@ class _FakeEnv:
     """Enough of a ManipulationEnv for the cadence (no simulator)."""
 
     def __init__(self) -> None:
-        from services.actor.tasks import EnvSettings
+        from services.tasks import EnvSettings
 
         self.settings = EnvSettings()
 

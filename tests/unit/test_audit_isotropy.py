@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from services.actor.tasks import EnvSettings, make_env
 from services.augmenter.audit_isotropy import drag_isotropy, spread
+from services.tasks import EnvSettings, make_env
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,9 @@ import numpy as np
 import pytest
 
 from proto.episode import Episode
-from services.augmenter.core.depth_image import (
+from services.augmenter.core.isometric import isometric_copy, rotate_actions
+from services.augmenter.core.pipeline import AugmentSettings, augment_episode
+from services.observation.depth_image import (
     DEFAULT_DEPTH_SPEC,
     DepthImageSpec,
     depth_codes,
@@ -29,9 +31,7 @@ from services.augmenter.core.depth_image import (
     policy_images,
     rotate_images,
 )
-from services.augmenter.core.isometric import isometric_copy, rotate_actions
-from services.augmenter.core.pipeline import AugmentSettings, augment_episode
-from services.augmenter.core.projection import quantized_observations
+from services.observation.projection import quantized_observations
 from tests.helpers.synthetic import synthetic_episode
 
 pytestmark = pytest.mark.unit
@@ -77,7 +77,7 @@ def _turn(rc: np.ndarray, phi: float) -> np.ndarray:
 
 def test_depth_range_is_the_renderers_clip_depth():
     """Code 255 is render_gripper_depth's clip depth and the default size is its default size."""
-    from services.actor.tasks.camera import render_gripper_depth
+    from services.tasks.camera import render_gripper_depth
 
     params = inspect.signature(render_gripper_depth).parameters
     assert params["far"].default == DEFAULT_DEPTH_SPEC.far
@@ -323,8 +323,8 @@ def _render_turned(env, seed: int, yaw0: float, phi: float) -> tuple[np.ndarray,
 
 @pytest.fixture(scope="module")
 def sim_env():
-    from services.actor.tasks import EnvSettings, make_env
-    from services.actor.tasks.camera import CameraSettings
+    from services.tasks import EnvSettings, make_env
+    from services.tasks.camera import CameraSettings
 
     env = make_env("block_pick", EnvSettings(depth_image=True, camera=CameraSettings(points_per_segment=16)))
     yield env

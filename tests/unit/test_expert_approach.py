@@ -18,9 +18,9 @@ import pytest
 
 from proto.episode import Episode
 from services.actor.episodes import EpisodeBuilder
-from services.actor.tasks import TASKS, make_env
-from services.actor.tasks.experts import LZ, SAFE_Z
 from services.augmenter.core.mea import MeaSettings, phase_split
+from services.tasks import TASKS, make_env
+from services.tasks.experts import LZ, SAFE_Z
 
 pytestmark = pytest.mark.unit
 

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch
 
-from services.augmenter.core.projection import DEFAULT_SPEC, ProjectionSpec, project
 from services.learner.core.groups import (
     C4,
     D4,
@@ -25,6 +24,7 @@ from services.learner.core.groups import (
     transform_images,
     transform_regular,
 )
+from services.observation.projection import DEFAULT_SPEC, ProjectionSpec, project
 
 pytestmark = pytest.mark.unit
 

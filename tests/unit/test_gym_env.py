@@ -6,7 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import services.actor.tasks.gym_env  # noqa: F401 - registers the ids
+import services.tasks.gym_env  # noqa: F401 - registers the ids
 
 pytestmark = pytest.mark.unit
 

@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from proto.episode import Episode
-from services.augmenter.core.depth_image import policy_images, rotate_images
 from services.augmenter.core.isometric import (
     QUARTER,
     compose_with_mea,
@@ -33,6 +32,7 @@ from services.augmenter.core.pipeline import (
     mea_copies,
     shared_rotation,
 )
+from services.observation.depth_image import policy_images, rotate_images
 from tests.helpers.synthetic import synthetic_episode
 
 pytestmark = pytest.mark.unit

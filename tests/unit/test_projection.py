@@ -14,8 +14,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.augmenter.core import projection as proj
-from services.augmenter.core.projection import (
+from services.observation import projection as proj
+from services.observation.projection import (
     ProjectionSpec,
     dequantize,
     dequantize_depth,

@@ -47,14 +47,15 @@ import numpy as np
 import pybullet as pb
 import pytest
 
+from proto.actions import DELTA_THETA
 from proto.episode import Episode
 from services.actor.episodes import EpisodeBuilder
-from services.actor.tasks import EnvSettings, ManipulationEnv, make_env
-from services.actor.tasks.camera import CameraSettings, render_gripper_depth
-from services.actor.tasks.env import workspace_xy_margin
-from services.actor.tasks.robot import DELTA_THETA, GRIPPER_LINKS, YAW_LIMIT, wrap
 from services.augmenter.core.isometric import WORKSPACE_CENTRE, rotate_actions, rotate_episode
-from services.augmenter.core.projection import DEFAULT_SPEC, project_batch, segments_to_points
+from services.observation.projection import DEFAULT_SPEC, project_batch, segments_to_points
+from services.tasks import EnvSettings, ManipulationEnv, make_env
+from services.tasks.camera import CameraSettings, render_gripper_depth
+from services.tasks.env import workspace_xy_margin
+from services.tasks.robot import GRIPPER_LINKS, YAW_LIMIT, wrap
 
 pytestmark = pytest.mark.unit
 

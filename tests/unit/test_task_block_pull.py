@@ -9,9 +9,9 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from services.actor.tasks import make_env
-from services.actor.tasks.block_pull import HALF, MIN_SEPARATION, BlockPull, PullExpert, footprint
-from services.actor.tasks.robot import WORKSPACE
+from services.tasks import make_env
+from services.tasks.block_pull import HALF, MIN_SEPARATION, BlockPull, PullExpert, footprint
+from services.tasks.robot import WORKSPACE
 
 pytestmark = pytest.mark.unit
 

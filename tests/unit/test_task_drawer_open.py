@@ -8,10 +8,10 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from services.actor.tasks import drawer_model as dm
-from services.actor.tasks import make_env
-from services.actor.tasks.drawer_open import CENTRE, CENTRE_JITTER, SPACING, SUCCESS_OPENING, DrawerExpert
-from services.actor.tasks.robot import WORKSPACE
+from services.tasks import drawer_model as dm
+from services.tasks import make_env
+from services.tasks.drawer_open import CENTRE, CENTRE_JITTER, SPACING, SUCCESS_OPENING, DrawerExpert
+from services.tasks.robot import WORKSPACE
 
 pytestmark = pytest.mark.unit
 

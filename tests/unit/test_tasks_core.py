@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.actor.tasks import TASKS, make_env
-from services.actor.tasks.prior import measure, summarise
-from services.actor.tasks.robot import DELTA_XYZ
-from services.augmenter.core.projection import ProjectionSpec, project
+from proto.actions import DELTA_XYZ
+from services.observation.projection import ProjectionSpec, project
+from services.tasks import TASKS, make_env
+from services.tasks.prior import measure, summarise
 
 pytestmark = pytest.mark.unit
 
@@ -97,7 +97,7 @@ def test_translation_action_shifts_objects_opposite_to_the_gripper(env):
 @pytest.mark.timeout(60)
 def test_depth_image_and_voxel_projection_share_orientation():
     """Baseline render and voxel projection both put +x at higher rows and +y at higher columns."""
-    from services.actor.tasks.env import EnvSettings
+    from services.tasks.env import EnvSettings
 
     env = make_env("block_pick", EnvSettings(depth_image=True))
     try:

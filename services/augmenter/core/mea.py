@@ -39,11 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from proto.actions import DELTA_THETA, DELTA_XYZ, THETA, XYZ
 from proto.episode import Augmentation, Episode
-
-DELTA_XYZ = 0.05
-DELTA_THETA = math.pi / 8
-JAW, XYZ, THETA = 0, slice(1, 4), 4
 
 
 @dataclass(frozen=True)

@@ -36,15 +36,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from proto.episode import Episode
-from services.augmenter.core.depth_image import (
+from proto.seeds import MEA_COPY_SEED_OFFSET, SHARED_ROTATION_STREAM
+from services.augmenter.core.isometric import compose_with_mea, draw_rotation, isometric_copy
+from services.augmenter.core.mea import MeaDraw, MeaSettings, augment
+from services.observation.depth_image import (
     DEFAULT_DEPTH_SPEC,
     DepthImageSpec,
     policy_images,
     rotate_images,
 )
-from services.augmenter.core.isometric import compose_with_mea, draw_rotation, isometric_copy
-from services.augmenter.core.mea import MeaDraw, MeaSettings, augment
-from services.augmenter.core.projection import ProjectionSpec, segment_policy_images
+from services.observation.projection import ProjectionSpec, segment_policy_images
 
 MEA_ON = ("demos", "successes", "all", "none")
 OBSERVATIONS = ("voxel", "depth")
@@ -121,9 +122,10 @@ def episode_seed(base: int, episode_id: str) -> int:
     return (zlib.crc32(episode_id.encode()) ^ (base * 0x9E3779B1)) & 0x7FFF_FFFF_FFFF_FFFF
 
 
-SHARED_ROTATION_STREAM = 1_000_000
-"""``default_rng([seed, 1_000_000])`` draws the MEA copies' shared rotation; copy k's MEA draws come
-from ``[seed, 1_000_001 + k]`` and isometric copy k's angle from ``[seed, k]``."""
+def mea_copy_rng(seed: int, copy_index: int) -> np.random.Generator:
+    """The generator of MEA copy ``copy_index`` of an episode augmented with ``seed`` (its provenance
+    ``Augmentation.seed``): enough to regenerate the un-rotated copy."""
+    return np.random.default_rng([seed, MEA_COPY_SEED_OFFSET + copy_index])
 
 
 def isometric_angle(seed: int, copy_index: int, actions: np.ndarray) -> float:
@@ -158,7 +160,7 @@ def mea_copies(
         augment(
             raw,
             settings,
-            np.random.default_rng([seed, SHARED_ROTATION_STREAM + 1 + k]),
+            mea_copy_rng(seed, k),
             seed=seed,
             copy_index=k,
             episode_id=f"{raw.episode_id}.mea{k}",

@@ -34,7 +34,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from services.learner.core.groups import ACTION_DIM, Group, action_matrix, inverse, transform_images
+from proto.actions import ACTION_DIM
+from services.learner.core.groups import Group, action_matrix, inverse, transform_images
 
 __all__ = [
     "ActionHead",

@@ -35,8 +35,9 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
+from proto.actions import ACTION_DIM
+
 __all__ = [
-    "ACTION_DIM",
     "C4",
     "D4",
     "Element",
@@ -55,8 +56,6 @@ __all__ = [
 Element = tuple[int, int]
 """(m, r): mirror bit and number of quarter turns."""
 
-ACTION_DIM = 5
-"""Action layout: (jaw, dx, dy, dz, dtheta)."""
 
 _ROT = ((1, 0, 0, 1), (0, -1, 1, 0), (-1, 0, 0, -1), (0, 1, -1, 0))
 """R(r 90 deg) as (a, b, c, d) = [[a, b], [c, d]], r = 0..3."""

@@ -32,6 +32,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from proto.actions import ACTION_DIM
 from services.learner.core.equivariant import (
     ActionHead,
     ActionLift,
@@ -43,7 +44,7 @@ from services.learner.core.equivariant import (
     LiftConv2d,
     LSTMState,
 )
-from services.learner.core.groups import ACTION_DIM, Group, get_group
+from services.learner.core.groups import Group, get_group
 from services.learner.core.privileged import CANONICAL_ANGLE, STATE_DIM
 
 __all__ = ["PRESETS", "Actor", "Critic", "NetConfig", "StateCritic", "build_actor", "build_critic"]

@@ -6,7 +6,7 @@ Why this layout (tasks-and-baselines.md §8 P4): the public code keeps float32 `
 * an episode of ``T`` transitions stores its ``T+1`` observations once (the next observation of
   step ``t`` is row ``t+1``), as uint8 codes;
 * a channel that is constant over the image (the tiled jaw code, channel 1 of
-  ``services.augmenter.core.projection.quantized_observations``) is stored as one byte per
+  ``services.observation.projection.quantized_observations``) is stored as one byte per
   observation and re-tiled by the consumer (``SequenceBatch.images_uint8``);
 * actions float32 (T, 5), rewards float32, ``terminated``/``truncated`` bool;
 * optionally ``state_dim`` float32 per observation: the privileged state a state critic reads
@@ -50,11 +50,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from proto.actions import ACTION_DIM
+
 if TYPE_CHECKING:
     from proto.episode import Episode
 
-ACTION_DIM = 5
-"""Normalised action (jaw, dx, dy, dz, dtheta); mirrors ``proto.episode.ACTION_DIM``."""
 RAW_KIND = "raw"
 """Provenance kind of an episode without ``augmentation``."""
 DEFAULT_STEPS_PER_EPISODE = 4

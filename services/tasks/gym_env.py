@@ -14,8 +14,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from services.actor.tasks import EnvSettings, make_env
-from services.actor.tasks.camera import CameraSettings
+from services.tasks import EnvSettings, make_env
+from services.tasks.camera import CameraSettings
 
 IDS = {"block_pull": "mea/BlockPull-v0", "block_pick": "mea/BlockPick-v0", "drawer_open": "mea/DrawerOpen-v0"}
 
@@ -69,9 +69,7 @@ class MeaTaskEnv(gym.Env):
 def register_envs() -> None:
     for task, env_id in IDS.items():
         if env_id not in gym.registry:
-            gym.register(
-                id=env_id, entry_point="services.actor.tasks.gym_env:MeaTaskEnv", kwargs={"task": task}
-            )
+            gym.register(id=env_id, entry_point="services.tasks.gym_env:MeaTaskEnv", kwargs={"task": task})
 
 
 register_envs()

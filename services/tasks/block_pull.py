@@ -15,9 +15,9 @@ import math
 import numpy as np
 import pybullet as pb
 
-from services.actor.tasks.env import ManipulationEnv, Task
-from services.actor.tasks.experts import Approach, Follower
-from services.actor.tasks.robot import WORKSPACE
+from services.tasks.env import ManipulationEnv, Task
+from services.tasks.experts import Approach, Follower
+from services.tasks.robot import WORKSPACE
 
 HALF = np.array([0.05, 0.05, 0.025])  # block half extents (m)
 MOVABLE_MASS = 0.5  # kg

@@ -17,7 +17,8 @@ import math
 
 import numpy as np
 
-from services.actor.tasks.robot import DELTA_THETA, DELTA_XYZ, wrap
+from proto.actions import DELTA_THETA, DELTA_XYZ
+from services.tasks.robot import wrap
 
 LZ = 0.27  # MEA's L_z (MeaSettings.lz): pivot height at or above which no object can be touched
 SAFE_Z = LZ + 0.01  # lowest pivot height of the approach's travel (1 cm margin over L_z)

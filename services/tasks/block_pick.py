@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pybullet as pb
 
-from services.actor.tasks.env import ManipulationEnv, Task, workspace_xy_margin
-from services.actor.tasks.experts import Approach, Follower, nearest_symmetric_yaw
+from services.tasks.env import ManipulationEnv, Task, workspace_xy_margin
+from services.tasks.experts import Approach, Follower, nearest_symmetric_yaw
 
 HALF = 0.025  # cube half extent (m)
 MOVABLE_MASS = 0.02  # kg

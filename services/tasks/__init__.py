@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import importlib
 
-from services.actor.tasks.env import EXPERT_STYLES, EnvSettings, ManipulationEnv, Observation, Task
+from services.tasks.env import EXPERT_STYLES, EnvSettings, ManipulationEnv, Observation, Task
 
 # task name -> "module:Class"; modules import lazily so one task's import cost is paid only when used
 TASKS: dict[str, str] = {
-    "block_pull": "services.actor.tasks.block_pull:BlockPull",
-    "block_pick": "services.actor.tasks.block_pick:BlockPick",
-    "drawer_open": "services.actor.tasks.drawer_open:DrawerOpen",
+    "block_pull": "services.tasks.block_pull:BlockPull",
+    "block_pick": "services.tasks.block_pick:BlockPick",
+    "drawer_open": "services.tasks.drawer_open:DrawerOpen",
 }
 
 

@@ -20,14 +20,14 @@ import numpy as np
 import pybullet as pb
 import pybullet_data
 
-from services.actor.tasks.camera import (
+from services.tasks.camera import (
     Cameras,
     CameraSettings,
     paint_fingers,
     render_gripper_depth,
     sample_fixed,
 )
-from services.actor.tasks.robot import GRIPPER_LINKS, WORKSPACE, ControlSettings, Robot
+from services.tasks.robot import GRIPPER_LINKS, WORKSPACE, ControlSettings, Robot
 
 SegmentParts = list[tuple[int, int | None]]  # (body id, link index or None for the whole body)
 

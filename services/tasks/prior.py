@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.actor.tasks.env import ManipulationEnv
-from services.actor.tasks.robot import DELTA_THETA, DELTA_XYZ
+from proto.actions import DELTA_THETA, DELTA_XYZ
+from services.tasks.env import ManipulationEnv
 
 
 def chamfer(a: np.ndarray, b: np.ndarray) -> float:

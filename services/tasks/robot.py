@@ -21,8 +21,8 @@ import numpy as np
 import pybullet as pb
 import pybullet_data
 
-DELTA_XYZ = 0.05  # m per unit action
-DELTA_THETA = math.pi / 8  # rad per unit action
+from proto.actions import DELTA_THETA, DELTA_XYZ
+
 # x, y bounds of the pivot and z bounds of the fingers' lowest point (m), as in the Equi-RSAC tasks
 WORKSPACE = np.array([[0.3, 0.7], [-0.2, 0.2], [0.01, 0.25]])
 REACH = 0.78  # m: the flange stays within this of the shoulder (link 1); measured, IK fails past ~0.8

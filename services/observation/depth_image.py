@@ -1,7 +1,7 @@
 """The `equirsac` variant's policy images: the rendered top-down depth image, quantised and rotated.
 
 The public Equi-RSAC observation is a gripper-centred, top-down, (nearly) orthographic depth image
-rendered by the simulator (``services.actor.tasks.camera.render_gripper_depth``); the actor records
+rendered by the simulator (``services.tasks.camera.render_gripper_depth``); the actor records
 it as ``Episode.images`` (T+1, 1, N, N) float16. This module turns it into the uint8 policy stack the
 learner's replay stores, exactly like the voxel path does (``projection.quantized_observations``),
 and applies the public code's isometric augmentation to it: one continuous rotation per copy.
@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.augmenter.core.projection import DEPTH_CHANNEL, JAW_CHANNEL, jaw_codes
+from services.observation.projection import DEPTH_CHANNEL, JAW_CHANNEL, jaw_codes
 
 __all__ = ["DepthImageSpec", "DEFAULT_DEPTH_SPEC", "depth_codes", "dequantize_depth", "policy_images",
            "rotate_images", "rotation_matrix"]  # fmt: skip

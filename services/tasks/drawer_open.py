@@ -14,10 +14,10 @@ import os
 import numpy as np
 import pybullet as pb
 
-from services.actor.tasks import drawer_model as dm
-from services.actor.tasks.env import ManipulationEnv, Task
-from services.actor.tasks.experts import Approach, Follower, nearest_symmetric_yaw
-from services.actor.tasks.robot import YAW_LIMIT
+from services.tasks import drawer_model as dm
+from services.tasks.env import ManipulationEnv, Task
+from services.tasks.experts import Approach, Follower, nearest_symmetric_yaw
+from services.tasks.robot import YAW_LIMIT
 
 SPACING = 0.12  # m between the two cabinets' centres, along their local y
 CENTRE = np.array([0.5, 0.0])  # pair centre (workspace centre) ...

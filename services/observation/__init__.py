@@ -1,0 +1,2 @@
+"""Observation pipeline shared by actors, augmenter and policies: segmented point clouds -> voxel
+orthographic projection or rendered depth image -> the policy's uint8 image."""
