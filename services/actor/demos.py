@@ -14,7 +14,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from services.actor.main import Actor, ActorConfig
+from services.actor.config import ActorConfig
+from services.actor.rollout import Actor
 from services.common import config, logs
 from services.common.mcap_io import McapRecorder
 

@@ -22,211 +22,22 @@ does not fit (logged, ``mea_actor_bad_weights_total``), keeps the weights it has
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
 from proto.seeds import ACTOR_SEED_STRIDE, actor_seed_base
-from proto.topics import EPISODES_RAW, REPLAY_GATE
+from proto.topics import EPISODES_RAW
+from services.actor.config import PRESETS, ActorConfig
 from services.actor.episodes import EpisodeBuilder
+from services.actor.rollout import Actor
 from services.common import config
-from services.common.bus.base import Bus
-from services.common.config import ServiceConfig
-from services.common.replay_gate import GateTracker
+from services.common.replay_gate import GateFollower
 from services.common.runtime import ServiceContext
 from services.common.weights import WeightsClient
-from services.observation.depth_image import policy_images as depth_policy_images
-from services.observation.projection import segment_policy_images
-from services.tasks import EXPERT_STYLES, TASKS, EnvSettings, ManipulationEnv, make_env
-from services.tasks.camera import CameraSettings
-from services.tasks.env import Observation
 
 log = logging.getLogger(__name__)
-POLICIES = ("expert", "random", "learned")
-
-
-@dataclasses.dataclass(frozen=True)
-class ActorConfig:
-    """Simulate a task and publish whole episodes."""
-
-    task: str = "block_pull"
-    """Task: block_pull, block_pick or drawer_open."""
-    policy: str = "random"
-    """Policy source after the demonstrations: expert, random or learned (latest broadcast weights)."""
-    demos: int = 0
-    """Successful scripted demonstrations to publish first (alternating probe/direct styles)."""
-    expert_style: str = "alternate"
-    """Expert style: alternate, probe (touch the fixed object first) or direct."""
-    episodes: int = 0
-    """Episodes to run after the demonstrations (0: until stopped)."""
-    index: int = 0
-    """Actor index: picks the seed stream and the default /metrics port."""
-    seed_base: int = 0
-    """First seed of the stream."""
-    depth_image: bool = False
-    """Also record the baseline depth image (the `equirsac` variant's observation)."""
-    points_per_segment: int = 256
-    """Points per segment in each observation."""
-    max_demo_attempts: int = 4
-    """Expert attempts per requested demonstration before giving up (only successes count)."""
-    follow_gate: bool = True
-    """Wait while the learner's replay gate says its update budget is used up (demos never wait)."""
-    gate_timeout: float = 10.0
-    """A gate older than this (s) is ignored (learner gone): the actor runs on."""
-    service: ServiceConfig = ServiceConfig()
-    """Identity, transport, metrics and logs."""
-
-    def __post_init__(self) -> None:
-        if self.task not in TASKS:
-            raise ValueError(f"task must be one of {sorted(TASKS)}, not {self.task!r}")
-        if self.policy not in POLICIES:
-            raise ValueError(f"policy must be one of {POLICIES}, not {self.policy!r}")
-        if self.expert_style not in ("alternate", *EXPERT_STYLES):
-            raise ValueError(f"expert_style must be alternate, probe or direct, not {self.expert_style!r}")
-
-    def env_settings(self) -> EnvSettings:
-        return EnvSettings(
-            depth_image=self.depth_image, camera=CameraSettings(points_per_segment=self.points_per_segment)
-        )
-
-
-PRESETS = {"default": ActorConfig()}
-
-
-def expert_style(cfg_style: str, k: int) -> str:
-    return cfg_style if cfg_style != "alternate" else EXPERT_STYLES[k % 2]
-
-
-def policy_image(obs: Observation) -> np.ndarray:
-    """The learned policy's input for one observation: voxel projection + jaw, uint8 (2, 84, 84),
-    bit-identical to what the augmenter attaches to stored episodes."""
-    return segment_policy_images(obs.points[None], obs.point_counts[None], np.array([obs.jaw], np.float32))[0]
-
-
-def policy_input(obs: Observation, observation: str) -> np.ndarray:
-    """The learned policy's input for ``observation`` ("voxel" or "depth"), uint8 (2, 84, 84).
-
-    ``voxel``: ``policy_image(obs)``. ``depth``: the rendered depth image's codes + jaw
-    (``services.observation.depth_image.policy_images``), taken through float16 first, as the
-    published episode stores it, so the input is bit-identical to what the augmenter attaches for
-    the learner. Needs ``obs.depth_image`` (an env with ``depth_image=True``); ValueError otherwise.
-    """
-    if observation == "voxel":
-        return policy_image(obs)
-    if observation != "depth":
-        raise ValueError(f"observation must be voxel or depth, not {observation!r}")
-    if obs.depth_image is None:
-        raise ValueError("a depth policy needs the rendered depth image: start the actor with --depth-image")
-    depth = np.asarray(obs.depth_image).astype(np.float16)[None]
-    return depth_policy_images(depth, np.array([obs.jaw], np.float32))[0]
-
-
-class GateFollower:
-    """Waits while the learner's latest ``ReplayGate`` says its allowance is used up."""
-
-    def __init__(self, bus: Bus, stale_after: float, first_wait: float = 1.5) -> None:
-        self.tracker = GateTracker(bus.subscribe(REPLAY_GATE, capacity=16))
-        self.stale_after, self.first_wait = stale_after, first_wait
-        self._first = True
-
-    def blocked(self) -> bool:
-        # before the first episode, give a running learner's gate (every ~0.5 s) a chance to arrive
-        gate = self.tracker.update(self.first_wait if self._first else 0.0)
-        self._first = False
-        if gate is None or time.monotonic() - self.tracker.seen_at > self.stale_after:
-            return False
-        return gate.inserted_steps >= gate.allowed_steps
-
-    def wait(self, stop) -> float:
-        """Wait until the gate opens (or goes stale, or ``stop`` is set); returns seconds waited."""
-        t0 = time.monotonic()
-        while self.blocked() and not stop.wait(0.05):
-            pass
-        return time.monotonic() - t0
-
-    def close(self) -> None:
-        self.tracker.sub.close()
-
-
-def run_episode(
-    env: ManipulationEnv, seed: int, act, builder: EpisodeBuilder, on_step=None
-) -> EpisodeBuilder:
-    """Roll out one episode with ``act(obs) -> action``; ``on_step(seconds)`` sees each step's time."""
-    obs = env.reset(seed)
-    builder.meta["fixed_object"] = env.task.fixed_index()  # privileged, for the learner's critic
-    builder.observe(obs)
-    for _ in range(env.settings.max_steps):
-        t0 = time.perf_counter()
-        action = act(obs)
-        obs, reward, terminated, truncated, _ = env.step(action)
-        if on_step is not None:
-            on_step(time.perf_counter() - t0)
-        builder.observe(obs)
-        builder.step(action, reward, terminated, truncated)
-        if terminated or truncated:
-            break
-    return builder
-
-
-class Actor:
-    """The actor's loop around an env, separate from transport so tests can drive it directly."""
-
-    def __init__(self, cfg: ActorConfig, instance: str, env: ManipulationEnv | None = None) -> None:
-        self.cfg = cfg
-        self.instance = instance
-        self.env = env or make_env(cfg.task, cfg.env_settings())
-        self.counter = 0
-        self.rng = np.random.default_rng([cfg.seed_base, cfg.index, 17])
-
-    def next_seed(self) -> int:
-        seed = self.cfg.seed_base + self.cfg.index * ACTOR_SEED_STRIDE + self.counter
-        self.counter += 1
-        return seed
-
-    def builder(self, seed: int, kind: str, version: int, is_demo: bool) -> EpisodeBuilder:
-        return EpisodeBuilder(task=self.cfg.task, seed=seed, actor_id=self.instance, policy_version=version,
-                              policy_kind=kind, is_demo=is_demo, segments=self.env.segment_names)  # fmt: skip
-
-    def expert_episode(self, k: int, on_step=None) -> EpisodeBuilder:
-        style = expert_style(self.cfg.expert_style, k)
-        seed = self.next_seed()
-        expert_rng = np.random.default_rng([seed, 3])
-        holder: dict = {}
-
-        def act(_obs):
-            if "expert" not in holder:  # built after reset, from the privileged state
-                holder["expert"] = self.env.task.expert(self.env, style, expert_rng)
-            return holder["expert"].act()
-
-        return run_episode(self.env, seed, act, self.builder(seed, f"expert_{style}", -1, True), on_step)
-
-    def random_episode(self, on_step=None) -> EpisodeBuilder:
-        seed = self.next_seed()
-        return run_episode(self.env, seed, lambda _o: self.rng.uniform(-1, 1, 5), self.builder(seed, "random", -1, False),
-                           on_step)  # fmt: skip
-
-    def learned_episode(self, policy, on_step=None) -> EpisodeBuilder:
-        """One episode with a ``PolicyRuntime`` (stochastic; its recurrent state starts afresh)."""
-        seed = self.next_seed()
-        policy.reset()
-        observation = policy.spec.observation
-        return run_episode(self.env, seed, lambda o: policy.act(policy_input(o, observation)),
-                           self.builder(seed, "learned", policy.version, False), on_step)  # fmt: skip
-
-    def policy_episode(self, k: int, policy=None, on_step=None) -> EpisodeBuilder:
-        """Episode k after the demonstrations, with the configured policy source."""
-        if self.cfg.policy == "expert":
-            return self.expert_episode(k, on_step)
-        if self.cfg.policy == "learned":
-            return self.learned_episode(policy, on_step)
-        return self.random_episode(on_step)
-
-    def episode_id(self, b: EpisodeBuilder) -> str:
-        return f"{self.instance}-{b.meta['seed']}-{self.counter}"
 
 
 def _metrics(ctx: ServiceContext):
@@ -362,13 +173,4 @@ def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
     return args
 
 
-__all__ = [
-    "Actor",
-    "ActorConfig",
-    "launch_args",
-    "main",
-    "policy_image",
-    "policy_input",
-    "run",
-    "run_episode",
-]
+__all__ = ["launch_args", "main", "run"]

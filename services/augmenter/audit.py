@@ -534,7 +534,8 @@ def audit_copies(
 
 def run_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[str, Any]]:
     """Record, measure the floor, augment and audit; returns (sections, meta) for ``emit``."""
-    from services.actor.main import Actor, ActorConfig
+    from services.actor.config import ActorConfig
+    from services.actor.rollout import Actor
     from services.augmenter import audit_report as rep
 
     t_start = time.perf_counter()

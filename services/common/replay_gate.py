@@ -6,7 +6,8 @@ from __future__ import annotations
 import time
 
 from proto.control import ReplayGate
-from services.common.bus.base import Subscription
+from proto.topics import REPLAY_GATE
+from services.common.bus.base import Bus, Subscription
 
 
 class GateTracker:
@@ -37,3 +38,30 @@ class GateTracker:
     def env_steps(self) -> int:
         """The learner's inserted env steps (-1: no gate seen)."""
         return -1 if self.latest is None else int(self.latest.inserted_steps)
+
+
+class GateFollower:
+    """Waits while the learner's latest ``ReplayGate`` says its allowance is used up."""
+
+    def __init__(self, bus: Bus, stale_after: float, first_wait: float = 1.5) -> None:
+        self.tracker = GateTracker(bus.subscribe(REPLAY_GATE, capacity=16))
+        self.stale_after, self.first_wait = stale_after, first_wait
+        self._first = True
+
+    def blocked(self) -> bool:
+        # before the first episode, give a running learner's gate (every ~0.5 s) a chance to arrive
+        gate = self.tracker.update(self.first_wait if self._first else 0.0)
+        self._first = False
+        if gate is None or time.monotonic() - self.tracker.seen_at > self.stale_after:
+            return False
+        return gate.inserted_steps >= gate.allowed_steps
+
+    def wait(self, stop) -> float:
+        """Wait until the gate opens (or goes stale, or ``stop`` is set); returns seconds waited."""
+        t0 = time.monotonic()
+        while self.blocked() and not stop.wait(0.05):
+            pass
+        return time.monotonic() - t0
+
+    def close(self) -> None:
+        self.tracker.sub.close()

@@ -25,8 +25,8 @@ Each cycle (polled about 5 times a second):
      past the budget (``env_steps >= --final-env-steps > 0``) gets ``--final-episodes`` episodes
      instead when set (the run's final, larger evaluation), on the same seed sequence: the first M
      of its seeds are every other evaluation's. The policy input is
-     ``services.actor.main.policy_input(obs, observation)`` (the voxel ``policy_image`` or the
-     depth image, as the weights' spec says), the rollout ``services.actor.main.run_episode``.
+     ``services.actor.rollout.policy_input(obs, observation)`` (the voxel ``policy_image`` or the
+     depth image, as the weights' spec says), the rollout ``services.actor.rollout.run_episode``.
      While episodes run, gates and weights announcements keep being consumed (their subscriptions
      are bounded and BLOCK: a full one would stall this process's transport and the learner).
   5. Summarise with ``services.evaluator.core.metrics``, publish an ``EvalReport`` on EVAL_REPORTS
@@ -59,7 +59,7 @@ from proto.seeds import EVAL_SEED_BASE
 from proto.topics import EVAL_REPORTS, REPLAY_GATE
 from proto.weights import WeightsBlob
 from services.actor.episodes import EpisodeBuilder
-from services.actor.main import policy_input, run_episode
+from services.actor.rollout import policy_input, run_episode
 from services.common import config
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig

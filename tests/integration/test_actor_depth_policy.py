@@ -16,7 +16,9 @@ import services.actor.main as actor_main
 from proto.episode import Episode
 from proto.topics import EPISODES_RAW
 from proto.weights import WeightsBlob
-from services.actor.main import ActorConfig, policy_image, policy_input, run
+from services.actor.config import ActorConfig
+from services.actor.main import run
+from services.actor.rollout import policy_image, policy_input
 from services.augmenter.core.pipeline import AugmentSettings, augment_episode
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig

@@ -7,7 +7,8 @@ import pytest
 
 from proto.episode import Episode
 from proto.topics import EPISODES_RAW
-from services.actor.main import ActorConfig, run
+from services.actor.config import ActorConfig
+from services.actor.main import run
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 
@@ -56,7 +57,7 @@ def test_learned_actor_acts_with_broadcast_weights_and_waits_for_the_replay_gate
     from proto.control import ReplayGate
     from proto.topics import REPLAY_GATE
     from proto.weights import WeightsBlob
-    from services.actor.main import policy_image
+    from services.actor.rollout import policy_image
     from services.common.weights import WeightsServer
     from services.learner.core.networks import PRESETS, build_actor
     from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors

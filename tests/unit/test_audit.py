@@ -40,7 +40,8 @@ pytestmark = pytest.mark.unit
 
 @pytest.fixture(scope="module")
 def pick():
-    from services.actor.main import Actor, ActorConfig
+    from services.actor.config import ActorConfig
+    from services.actor.rollout import Actor
 
     actor = Actor(ActorConfig(task="block_pick", policy="expert", expert_style="direct"), "test-audit")
     demos, _ = record_demos(actor, 1, 4)

@@ -1,0 +1,63 @@
+"""The actor's settings: which task, which policy source, how many demonstrations, which seeds."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from services.common.config import ServiceConfig
+from services.tasks import EXPERT_STYLES, TASKS, EnvSettings
+from services.tasks.camera import CameraSettings
+
+POLICIES = ("expert", "random", "learned")
+
+
+@dataclasses.dataclass(frozen=True)
+class ActorConfig:
+    """Simulate a task and publish whole episodes."""
+
+    task: str = "block_pull"
+    """Task: block_pull, block_pick or drawer_open."""
+    policy: str = "random"
+    """Policy source after the demonstrations: expert, random or learned (latest broadcast weights)."""
+    demos: int = 0
+    """Successful scripted demonstrations to publish first (alternating probe/direct styles)."""
+    expert_style: str = "alternate"
+    """Expert style: alternate, probe (touch the fixed object first) or direct."""
+    episodes: int = 0
+    """Episodes to run after the demonstrations (0: until stopped)."""
+    index: int = 0
+    """Actor index: picks the seed stream and the default /metrics port."""
+    seed_base: int = 0
+    """First seed of the stream."""
+    depth_image: bool = False
+    """Also record the baseline depth image (the `equirsac` variant's observation)."""
+    points_per_segment: int = 256
+    """Points per segment in each observation."""
+    max_demo_attempts: int = 4
+    """Expert attempts per requested demonstration before giving up (only successes count)."""
+    follow_gate: bool = True
+    """Wait while the learner's replay gate says its update budget is used up (demos never wait)."""
+    gate_timeout: float = 10.0
+    """A gate older than this (s) is ignored (learner gone): the actor runs on."""
+    service: ServiceConfig = ServiceConfig()
+    """Identity, transport, metrics and logs."""
+
+    def __post_init__(self) -> None:
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {sorted(TASKS)}, not {self.task!r}")
+        if self.policy not in POLICIES:
+            raise ValueError(f"policy must be one of {POLICIES}, not {self.policy!r}")
+        if self.expert_style not in ("alternate", *EXPERT_STYLES):
+            raise ValueError(f"expert_style must be alternate, probe or direct, not {self.expert_style!r}")
+
+    def env_settings(self) -> EnvSettings:
+        return EnvSettings(
+            depth_image=self.depth_image, camera=CameraSettings(points_per_segment=self.points_per_segment)
+        )
+
+
+PRESETS = {"default": ActorConfig()}
+
+
+def expert_style(cfg_style: str, k: int) -> str:
+    return cfg_style if cfg_style != "alternate" else EXPERT_STYLES[k % 2]

@@ -1,0 +1,118 @@
+"""Rollouts of one task with a policy source, apart from transport: what an actor and the evaluator
+run, and what the audit and demo recorder reuse. A learned policy's input is built here exactly as
+the augmenter attaches it to stored episodes."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from proto.seeds import ACTOR_SEED_STRIDE
+from services.actor.config import ActorConfig, expert_style
+from services.actor.episodes import EpisodeBuilder
+from services.observation.depth_image import policy_images as depth_policy_images
+from services.observation.projection import segment_policy_images
+from services.tasks import ManipulationEnv, make_env
+from services.tasks.env import Observation
+
+
+def policy_image(obs: Observation) -> np.ndarray:
+    """The learned policy's input for one observation: voxel projection + jaw, uint8 (2, 84, 84),
+    bit-identical to what the augmenter attaches to stored episodes."""
+    return segment_policy_images(obs.points[None], obs.point_counts[None], np.array([obs.jaw], np.float32))[0]
+
+
+def policy_input(obs: Observation, observation: str) -> np.ndarray:
+    """The learned policy's input for ``observation`` ("voxel" or "depth"), uint8 (2, 84, 84).
+
+    ``voxel``: ``policy_image(obs)``. ``depth``: the rendered depth image's codes + jaw
+    (``services.observation.depth_image.policy_images``), taken through float16 first, as the
+    published episode stores it, so the input is bit-identical to what the augmenter attaches for
+    the learner. Needs ``obs.depth_image`` (an env with ``depth_image=True``); ValueError otherwise.
+    """
+    if observation == "voxel":
+        return policy_image(obs)
+    if observation != "depth":
+        raise ValueError(f"observation must be voxel or depth, not {observation!r}")
+    if obs.depth_image is None:
+        raise ValueError("a depth policy needs the rendered depth image: start the actor with --depth-image")
+    depth = np.asarray(obs.depth_image).astype(np.float16)[None]
+    return depth_policy_images(depth, np.array([obs.jaw], np.float32))[0]
+
+
+def run_episode(
+    env: ManipulationEnv, seed: int, act, builder: EpisodeBuilder, on_step=None
+) -> EpisodeBuilder:
+    """Roll out one episode with ``act(obs) -> action``; ``on_step(seconds)`` sees each step's time."""
+    obs = env.reset(seed)
+    builder.meta["fixed_object"] = env.task.fixed_index()  # privileged, for the learner's critic
+    builder.observe(obs)
+    for _ in range(env.settings.max_steps):
+        t0 = time.perf_counter()
+        action = act(obs)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        if on_step is not None:
+            on_step(time.perf_counter() - t0)
+        builder.observe(obs)
+        builder.step(action, reward, terminated, truncated)
+        if terminated or truncated:
+            break
+    return builder
+
+
+class Actor:
+    """The actor's loop around an env, separate from transport so tests can drive it directly."""
+
+    def __init__(self, cfg: ActorConfig, instance: str, env: ManipulationEnv | None = None) -> None:
+        self.cfg = cfg
+        self.instance = instance
+        self.env = env or make_env(cfg.task, cfg.env_settings())
+        self.counter = 0
+        self.rng = np.random.default_rng([cfg.seed_base, cfg.index, 17])
+
+    def next_seed(self) -> int:
+        seed = self.cfg.seed_base + self.cfg.index * ACTOR_SEED_STRIDE + self.counter
+        self.counter += 1
+        return seed
+
+    def builder(self, seed: int, kind: str, version: int, is_demo: bool) -> EpisodeBuilder:
+        return EpisodeBuilder(task=self.cfg.task, seed=seed, actor_id=self.instance, policy_version=version,
+                              policy_kind=kind, is_demo=is_demo, segments=self.env.segment_names)  # fmt: skip
+
+    def expert_episode(self, k: int, on_step=None) -> EpisodeBuilder:
+        style = expert_style(self.cfg.expert_style, k)
+        seed = self.next_seed()
+        expert_rng = np.random.default_rng([seed, 3])
+        holder: dict = {}
+
+        def act(_obs):
+            if "expert" not in holder:  # built after reset, from the privileged state
+                holder["expert"] = self.env.task.expert(self.env, style, expert_rng)
+            return holder["expert"].act()
+
+        return run_episode(self.env, seed, act, self.builder(seed, f"expert_{style}", -1, True), on_step)
+
+    def random_episode(self, on_step=None) -> EpisodeBuilder:
+        seed = self.next_seed()
+        return run_episode(self.env, seed, lambda _o: self.rng.uniform(-1, 1, 5), self.builder(seed, "random", -1, False),
+                           on_step)  # fmt: skip
+
+    def learned_episode(self, policy, on_step=None) -> EpisodeBuilder:
+        """One episode with a ``PolicyRuntime`` (stochastic; its recurrent state starts afresh)."""
+        seed = self.next_seed()
+        policy.reset()
+        observation = policy.spec.observation
+        return run_episode(self.env, seed, lambda o: policy.act(policy_input(o, observation)),
+                           self.builder(seed, "learned", policy.version, False), on_step)  # fmt: skip
+
+    def policy_episode(self, k: int, policy=None, on_step=None) -> EpisodeBuilder:
+        """Episode k after the demonstrations, with the configured policy source."""
+        if self.cfg.policy == "expert":
+            return self.expert_episode(k, on_step)
+        if self.cfg.policy == "learned":
+            return self.learned_episode(policy, on_step)
+        return self.random_episode(on_step)
+
+    def episode_id(self, b: EpisodeBuilder) -> str:
+        return f"{self.instance}-{b.meta['seed']}-{self.counter}"
