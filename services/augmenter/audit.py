@@ -206,8 +206,7 @@ def distinct_points(points: np.ndarray, count: int) -> np.ndarray:
 def fused_clouds(env: ManipulationEnv) -> list[np.ndarray]:
     """Everything the cameras see of each segment now (before the random draw of P points), in the
     gripper-centric frame, in segment order."""
-    parts = {"gripper": env._gripper_parts(), **env.task.object_segments()}
-    world = env.cameras.render_segments(parts)
+    world = env.segment_clouds()
     origin = env.robot.pivot()[0]
     return [world[name] - origin if len(world[name]) else world[name] for name in env.segment_names]
 

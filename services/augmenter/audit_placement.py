@@ -32,6 +32,7 @@ orientation (and velocity) turned by phi about z; joint states (a drawer's openi
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -45,7 +46,6 @@ from services.augmenter.core.isometric import WORKSPACE_CENTRE, cos_sin, rotate_
 if TYPE_CHECKING:  # pybullet is imported only where an env exists
     from services.tasks.env import ManipulationEnv, Observation
 
-SETTLE_STEPS = 10  # physics steps env.reset lets the world rest after placing the arm; mirrored here
 RESAMPLE_SALT = 0x5EED_A0D1  # offsets the replay's point-sampling stream from the recorded one
 GRID = 9  # translations tried per axis of the feasible box
 ROTATED_KINDS = ("isometric", "mea+isometric")
@@ -78,22 +78,7 @@ class Placement:
 
     def move_scene(self, env: ManipulationEnv) -> None:
         """Turn and shift every body but the floor and the arm as they are now."""
-        import pybullet as pb
-
-        c, s = cos_sin(self.phi)
-        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        qz = (0.0, 0.0, math.sin(self.phi / 2), math.cos(self.phi / 2))
-        cid = env.client
-        for i in range(pb.getNumBodies(physicsClientId=cid)):
-            body = pb.getBodyUniqueId(i, physicsClientId=cid)
-            if body in (env.floor, env.robot.body):
-                continue
-            pos, quat = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
-            lin, ang = pb.getBaseVelocity(body, physicsClientId=cid)
-            new_pos = rot @ np.asarray(pos) + np.r_[self.shift, 0.0]
-            _, new_quat = pb.multiplyTransforms((0, 0, 0), qz, (0, 0, 0), quat)
-            pb.resetBasePositionAndOrientation(body, new_pos.tolist(), new_quat, physicsClientId=cid)
-            pb.resetBaseVelocity(body, (rot @ lin).tolist(), (rot @ ang).tolist(), physicsClientId=cid)
+        env.move_scene(self.phi, self.shift, cos_sin(self.phi))
 
 
 def yaw_branch(ep: Episode, limit: float) -> float | None:
@@ -175,20 +160,13 @@ def place(
 ) -> Observation:
     """Reset the task from ``seed``, move the scene as ``placement`` says (if given), and teleport
     the arm to ``pose`` (pivot x, y, z, yaw) with the jaw at ``jaw``; the world then rests as long
-    as after an ordinary reset.
+    as after an ordinary reset (``ManipulationEnv.place_state``).
 
     ``resample``: draw the observed points from a sampling stream independent of the recorded
-    episode's. ``observe`` seeds its sampler with (env.seed, step), and env.seed serves nothing
-    else once the reset has placed the objects, so replacing it changes only which points are
-    drawn. Without it a replay whose fused clouds are bit-identical to the recording draws the very
-    same points and the Chamfer distance is 0, a floor no augmented copy could share."""
-    env.reset(seed)
-    if resample:
-        env.seed = (int(seed) + RESAMPLE_SALT) % 2**63
-    if placement is not None and placement.moves_scene:
-        placement.move_scene(env)
-    pose = np.asarray(pose, np.float64)
-    env.robot.reset(pose[:3], float(pose[3]), jaw=float(jaw))
-    for _ in range(SETTLE_STEPS):
-        env.step_physics()
-    return env.observe()
+    episode's (the env's sampling seed offset by ``RESAMPLE_SALT``; the objects are still placed
+    from ``seed``). Without it a replay whose fused clouds are bit-identical to the recording draws
+    the very same points and the Chamfer distance is 0, a floor no augmented copy could share."""
+    sampling_seed = (int(seed) + RESAMPLE_SALT) % 2**63 if resample else None
+    moved = placement is not None and placement.moves_scene
+    arrange = functools.partial(placement.move_scene, env) if moved else None
+    return env.place_state(seed, pose, jaw, sampling_seed=sampling_seed, arrange=arrange)

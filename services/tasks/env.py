@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,6 +31,10 @@ from services.tasks.camera import (
 from services.tasks.robot import GRIPPER_LINKS, WORKSPACE, ControlSettings, Robot
 
 SegmentParts = list[tuple[int, int | None]]  # (body id, link index or None for the whole body)
+
+SETTLE_STEPS = 10
+"""Physics steps the world rests after the arm is placed (``reset``, ``place_state``): objects
+settle on the floor before the first observation."""
 
 
 @dataclass(frozen=True)
@@ -142,14 +147,19 @@ class ManipulationEnv:
         self.substeps = 0
 
     # --- geometry -----------------------------------------------------------------------------
-    def _gripper_parts(self) -> SegmentParts:
+    def gripper_parts(self) -> SegmentParts:
+        """The bodies/links whose points form the gripper segment."""
         return [(self.robot.body, link) for link in GRIPPER_LINKS]
+
+    def segment_clouds(self) -> dict[str, np.ndarray]:
+        """Everything the cameras see of each segment now, world frame, before the draw of P points."""
+        return self.cameras.render_segments({"gripper": self.gripper_parts(), **self.task.object_segments()})
 
     def _calibrate(self) -> None:
         """Find the gripper's point centroid in the flange frame (the controller's pivot)."""
         r = self.robot
         r.reset(np.array([0.5, 0.0, 0.3]), 0.0, jaw=1.0)
-        pts = self.cameras.render_segments({"gripper": self._gripper_parts()})["gripper"]
+        pts = self.cameras.render_segments({"gripper": self.gripper_parts()})["gripper"]
         fpos, fquat = r.flange_pose()
         m = np.array(pb.getMatrixFromQuaternion(fquat)).reshape(3, 3)
         r.calibrate(m.T @ (pts.mean(axis=0) - fpos))
@@ -184,9 +194,61 @@ class ManipulationEnv:
         xy, yaw = self.task.initial_gripper(rng)
         z = self.settings.initial_tip_height + self.robot.tip_drop
         self.robot.reset(np.array([xy[0], xy[1], z]), yaw, jaw=1.0)
-        for _ in range(10):  # let objects rest on the floor
-            self.step_physics()
+        self._rest()
         return self.observe()
+
+    def place_state(
+        self,
+        seed: int,
+        pivot_pose: np.ndarray,
+        jaw: float,
+        *,
+        sampling_seed: int | None = None,
+        arrange: Callable[[], None] | None = None,
+    ) -> Observation:
+        """Reset from ``seed``, call ``arrange()`` (e.g. ``move_scene``), and teleport the arm to
+        ``pivot_pose`` (pivot x, y, z, yaw) with the jaw at ``jaw``; the world then rests as long as
+        after ``reset``, and the observation of that state is returned.
+
+        ``sampling_seed`` replaces the seed the observed points are drawn with: ``observe`` seeds
+        its sampler with (seed, step), and the seed serves nothing else once the reset has placed
+        the objects, so replacing it changes only which points are drawn."""
+        self.reset(seed)
+        if sampling_seed is not None:
+            self.seed = int(sampling_seed)
+        if arrange is not None:
+            arrange()
+        pose = np.asarray(pivot_pose, np.float64)
+        self.robot.reset(pose[:3], float(pose[3]), jaw=float(jaw))
+        self._rest()
+        return self.observe()
+
+    def move_scene(
+        self, turn: float, shift: Sequence[float], cos_sin: tuple[float, float] | None = None
+    ) -> None:
+        """Move every body but the floor and the arm rigidly, as it is now: ``x -> R(turn) x + shift``
+        about the world z axis (``shift``: x, y in m), orientations and velocities turned alike;
+        joint states (a drawer's opening) are kept. ``cos_sin``: cos and sin of ``turn`` where the
+        caller has them exact (quarter turns); default ``math.cos``/``math.sin``."""
+        c, s = cos_sin if cos_sin is not None else (math.cos(turn), math.sin(turn))
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        qz = (0.0, 0.0, math.sin(turn / 2), math.cos(turn / 2))
+        offset = np.r_[shift, 0.0]
+        cid = self.client
+        for i in range(pb.getNumBodies(physicsClientId=cid)):
+            body = pb.getBodyUniqueId(i, physicsClientId=cid)
+            if body in (self.floor, self.robot.body):
+                continue
+            pos, quat = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
+            lin, ang = pb.getBaseVelocity(body, physicsClientId=cid)
+            new_pos = rot @ np.asarray(pos) + offset
+            _, new_quat = pb.multiplyTransforms((0, 0, 0), qz, (0, 0, 0), quat)
+            pb.resetBasePositionAndOrientation(body, new_pos.tolist(), new_quat, physicsClientId=cid)
+            pb.resetBaseVelocity(body, (rot @ lin).tolist(), (rot @ ang).tolist(), physicsClientId=cid)
+
+    def _rest(self) -> None:
+        for _ in range(SETTLE_STEPS):  # let objects rest on the floor
+            self.step_physics()
 
     def step(self, action: np.ndarray) -> tuple[Observation, float, bool, bool, dict]:
         _, _, clipped = self.robot.command(action)
@@ -199,8 +261,7 @@ class ManipulationEnv:
 
     def observe(self) -> Observation:
         s = self.settings
-        segments = {"gripper": self._gripper_parts(), **self.task.object_segments()}
-        world = self.cameras.render_segments(segments)
+        world = self.segment_clouds()
         # The frame origin is the centroid of the gripper's points, measured once in free space at
         # calibration and carried by forward kinematics: per-frame centroids jitter by millimetres
         # as the fixed cameras see different sides of the moving gripper.

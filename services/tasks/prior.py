@@ -65,18 +65,13 @@ class PriorSample:
     chamfer_m: float
 
 
-def _fused(env: ManipulationEnv) -> dict[str, np.ndarray]:
-    segments = {"gripper": env._gripper_parts(), **env.task.object_segments()}
-    return env.cameras.render_segments(segments)
-
-
 def measure(env: ManipulationEnv, seed: int, steps: int, rng: np.random.Generator) -> list[PriorSample]:
     """Random free-space actions (no contact, no clipping) from a reset; one sample per step."""
     env.reset(seed)
     # start high so random moves stay clear of the objects
     lo, hi = env.robot.pivot_bounds()
     samples = []
-    world, origin = _fused(env), env.robot.pivot()[0]
+    world, origin = env.segment_clouds(), env.robot.pivot()[0]
     for _ in range(steps):
         a = rng.uniform(-1, 1, 5)
         a[0] = 1.0  # jaw held open: the jaw does not change the gripper's shape between steps
@@ -86,7 +81,7 @@ def measure(env: ManipulationEnv, seed: int, steps: int, rng: np.random.Generato
         if np.any(target < lo) or np.any(target > hi) or target[2] < lo[2] + 0.08 or abs(target_yaw) > 2.5:
             a[1:5] = -a[1:5]
         env.step(a)
-        new = _fused(env)
+        new = env.segment_clouds()
         if env.contacts().any():
             world, origin = new, env.robot.pivot()[0]
             continue
