@@ -23,7 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "render learning curves (success vs env steps, mean ± std over seeds) to PNG",
     ),
     "audit": (
-        "services.augmenter.audit",
+        "services.bench.audit",
         "replay augmented episodes through physics and report their validity",
     ),
     "demos": ("services.actor.demos", "record scripted demonstrations of a task to an MCAP file"),

@@ -35,7 +35,7 @@ Bad input
 
 Physics audit (optional, ``--audit-fraction f``)
     A background thread replays a fraction f of the MEA copies through the simulator with
-    ``services.augmenter.audit.audit_episode`` (imported lazily, in that thread: it pulls in
+    ``services.augmenter.audit_physics.audit_episode`` (imported lazily, in that thread: it pulls in
     pybullet) and exports the fraction of audited transitions found valid
     (``mea_augmenter_audit_valid_ratio``). Copies are chosen by a stable hash of their id. The
     audit sees the MEA copy before the shared isometric rotation (regenerated from its recorded
@@ -191,7 +191,7 @@ def _metrics(m: ServiceMetrics) -> dict:
 
 
 class PhysicsAudit:
-    """The default audit: ``services.augmenter.audit.audit_episode`` in one env per (task, points).
+    """The default audit: ``services.augmenter.audit_physics.audit_episode`` in one env per (task, points).
 
     Everything is imported and built lazily, on the audit thread, at the first copy audited."""
 
@@ -201,7 +201,7 @@ class PhysicsAudit:
 
     def __call__(self, copy: Episode, source: Episode) -> np.ndarray:
         if self._audit is None:
-            from services.augmenter.audit import audit_episode  # pulls in pybullet
+            from services.augmenter.audit_physics import audit_episode  # pulls in pybullet
 
             self._audit = audit_episode
         key = (copy.task, int(copy.points.shape[2]))

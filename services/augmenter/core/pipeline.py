@@ -152,21 +152,43 @@ def isometric_copies(raw: Episode, count: int, seed: int) -> list[Episode]:
     ]
 
 
+def mea_copy(
+    raw: Episode, settings: MeaSettings, seed: int, copy_index: int, episode_id: str | None = None
+) -> tuple[Episode | None, MeaDraw]:
+    """MEA copy ``copy_index`` of ``raw`` before any rotation, drawn from ``mea_copy_rng`` (None where
+    the guards left nothing); ``episode_id`` defaults to the pipeline's ``<raw id>.mea<k>``."""
+    return augment(
+        raw,
+        settings,
+        mea_copy_rng(seed, copy_index),
+        seed=seed,
+        copy_index=copy_index,
+        episode_id=f"{raw.episode_id}.mea{copy_index}" if episode_id is None else episode_id,
+    )
+
+
 def mea_copies(
     raw: Episode, settings: MeaSettings, count: int, seed: int
 ) -> list[tuple[Episode | None, MeaDraw]]:
     """The ``count`` MEA copies of ``raw`` before any rotation (None where the guards left nothing)."""
-    return [
-        augment(
-            raw,
-            settings,
-            mea_copy_rng(seed, k),
-            seed=seed,
-            copy_index=k,
-            episode_id=f"{raw.episode_id}.mea{k}",
-        )
-        for k in range(count)
-    ]
+    return [mea_copy(raw, settings, seed, k) for k in range(count)]
+
+
+def kept_mea_copies(
+    raw: Episode, settings: MeaSettings, count: int, seed: int, stats: AugmentStats
+) -> list[Episode]:
+    """The MEA copies of ``raw`` the guards left something of, before any rotation; the guards' work
+    (rejections, cut and empty copies) and the copies made are added to ``stats``."""
+    made = []
+    for copy, draw in mea_copies(raw, settings, count, seed):
+        stats.rejections += draw.rejections
+        stats.cuts += int(draw.cut)
+        if copy is None:
+            stats.mea_empty += 1
+        else:
+            made.append(copy)
+    stats.mea_made += len(made)
+    return made
 
 
 def with_images(ep: Episode, spec: ProjectionSpec) -> Episode:
@@ -215,15 +237,7 @@ def augment_episode(raw: Episode, s: AugmentSettings) -> tuple[list[Episode], Au
         return out, stats
     out = [raw, *isometric_copies(raw, s.isometric_count(raw), seed)]
     if s.applies_mea(raw):
-        made = []
-        for copy, draw in mea_copies(raw, s.mea, s.mea_copies, seed):
-            stats.rejections += draw.rejections
-            stats.cuts += int(draw.cut)
-            if copy is None:
-                stats.mea_empty += 1
-            else:
-                made.append(copy)
-        stats.mea_made += len(made)
+        made = kept_mea_copies(raw, s.mea, s.mea_copies, seed, stats)
         if s.isometric_on_mea and made:
             phi = shared_rotation(seed, made)
             made = [compose_with_mea(copy, phi) for copy in made]

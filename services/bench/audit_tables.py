@@ -3,8 +3,9 @@ simulation, the pivot error, and the noise floor beside the tolerance in use.
 
 Kinds (``KINDS``): ``raw`` (the demonstrations themselves, replayed from their own first state:
 the identity replays of the noise floor), ``isometric``, ``mea`` and ``mea+isometric`` copies. A
-copy that cannot be placed in the simulator at all (``audit_placement.NotSimulableError``) is counted
-apart, per reason, never as valid and never dropped silently.
+copy that cannot be placed in the simulator at all
+(``services.augmenter.audit_placement.NotSimulableError``) is counted apart, per reason, never as
+valid and never dropped silently.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from services.augmenter.audit import (
+from services.augmenter.core.audit_metrics import (
     METRICS,
     PHASES,
     SAFETY,
