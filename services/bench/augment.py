@@ -330,7 +330,7 @@ def _wait_alive(watch, who: tuple[str, str], proc, timeout: float) -> None:
 
 
 def bench_latency(cfg: AugmentBenchConfig) -> list[dict[str, Any]]:
-    from services.augmenter.main import AugmenterConfig
+    from services.augmenter.config import AugmenterConfig
     from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
     from services.common.config import ServiceConfig
 

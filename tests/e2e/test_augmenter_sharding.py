@@ -13,7 +13,7 @@ import pytest
 from proto.episode import Episode
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW
 from services.augmenter.core.pipeline import AugmentSettings, augment_episode
-from services.augmenter.main import shard_of
+from services.augmenter.core.routing import shard_of
 from services.common.bus.zenoh_bus import ZenohBus
 from tests.helpers import BASE_TIME
 from tests.helpers.synthetic import synthetic_episode

@@ -12,9 +12,12 @@ import pytest
 from proto.control import Heartbeat
 from proto.episode import Episode
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW, STATUS
+from services.augmenter.audit_worker import Auditor
+from services.augmenter.config import AugmenterConfig
 from services.augmenter.core.mea import augment
 from services.augmenter.core.pipeline import AugmentSettings, augment_episode, episode_seed
-from services.augmenter.main import Auditor, AugmenterConfig, output_kind, run, shard_of
+from services.augmenter.core.routing import output_kind, shard_of
+from services.augmenter.main import run
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.metrics import ServiceMetrics
