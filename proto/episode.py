@@ -13,20 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from proto.actions import ACTION_DIM
-from proto.codec import (
-    Arr,
-    Bool,
-    Float,
-    Int,
-    ListOf,
-    MapOf,
-    Message,
-    Nested,
-    Opt,
-    ProtocolError,
-    Str,
-    spec,
-)
+from proto.codec import Message
+from proto.msgpack_wire import ProtocolError
+from proto.specs import Arr, Bool, Float, Int, ListOf, MapOf, Nested, Opt, Str, spec
 
 TASKS = ("block_pull", "block_pick", "drawer_open", "surgical_grasp_any")
 POLICY_KINDS = ("expert_probe", "expert_direct", "random", "learned")

@@ -8,19 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from proto.codec import (
-    ANY_SHAPE,
-    WIRE_DTYPES,
-    Arr,
-    Float,
-    Int,
-    MapOf,
-    Message,
-    ProtocolError,
-    Str,
-    spec,
-    wire_dtype,
-)
+from proto.codec import Message
+from proto.msgpack_wire import WIRE_DTYPES, ProtocolError, wire_dtype
+from proto.specs import ANY_SHAPE, Arr, Float, Int, MapOf, Str, spec
 
 ALGORITHMS = ("equi_rsac", "rsac", "gasv2")
 DIGEST_PATTERN = r"[0-9a-f]{64}"

@@ -22,7 +22,7 @@ comes ``flush_interval_s`` after the last flush, and on :meth:`McapRecorder.flus
 reach the OS at once (a process crash loses nothing written); only ``close`` fsyncs.
 
 Reading never unpickles anything: payloads go through :func:`proto.codec.decode`, which validates
-every field against its spec under the given :class:`~proto.codec.Limits`.
+every field against its spec under the given :class:`~proto.msgpack_wire.Limits`.
 """
 
 from __future__ import annotations
@@ -50,8 +50,9 @@ from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 import proto  # noqa: F401 - registers every message type for decoding
-from proto.codec import DEFAULT_LIMITS, Limits, Message, ProtocolError, decode
+from proto.codec import Message, decode
 from proto.jsonschema import json_schema_text
+from proto.msgpack_wire import DEFAULT_LIMITS, Limits, ProtocolError
 
 log = logging.getLogger(__name__)
 

@@ -14,8 +14,9 @@ import threading
 import numpy as np
 
 from proto.actions import ACTION_DIM
-from proto.codec import Message, pack
+from proto.codec import Message
 from proto.episode import Episode
+from proto.msgpack_wire import pack
 from proto.weights import WeightsBlob
 
 SEGMENTS = ("gripper", "object_0", "object_1")
