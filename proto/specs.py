@@ -21,6 +21,10 @@ from proto.msgpack_wire import Limits, ProtocolError
 if TYPE_CHECKING:
     from proto.codec import Message
 
+ID_PATTERN = r"[A-Za-z0-9_.-]{1,96}"
+"""Ids of runs, actors, service instances and episodes; also what a key-expression chunk may hold
+(:mod:`proto.topics`), since ids travel in keys."""
+
 
 def _range(lo: float | None, hi: float | None) -> str:
     if lo is None and hi is None:
