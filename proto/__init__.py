@@ -1,8 +1,9 @@
 """Versioned wire schemas (msgpack) and the topic registry. See proto/README.md."""
 
-from proto.codec import DEFAULT_LIMITS, Limits, Message, ProtocolError, decode
+from proto.codec import Message, decode
 from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
+from proto.msgpack_wire import DEFAULT_LIMITS, Limits, ProtocolError
 from proto.weights import WeightsAnnouncement, WeightsBlob, tensors_digest
 
 __all__ = [

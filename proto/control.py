@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from proto.codec import Float, Int, MapOf, Message, Str, spec
-from proto.episode import ID_PATTERN, TASKS
+from proto.codec import Message
+from proto.episode import TASKS
+from proto.specs import ID_PATTERN, Float, Int, MapOf, Str, spec
 
 SERVICES = ("router", "actor", "augmenter", "learner", "evaluator", "inference", "launcher", "bench", "test")
 STATES = ("starting", "running", "stopping", "failed")

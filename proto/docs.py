@@ -17,8 +17,9 @@ import sys
 from pathlib import Path
 
 import proto
-from proto import codec
-from proto.codec import Limits, Message, field_table
+from proto import msgpack_wire
+from proto.codec import Message, field_table
+from proto.msgpack_wire import Limits
 from proto.topics import PREFIX, TOPICS, Topic
 
 BEGIN = "<!-- BEGIN GENERATED -->"
@@ -59,7 +60,7 @@ def _first_line(doc: str | None) -> str:
 
 def _limit_docs() -> dict[str, str]:
     """Attribute docstrings of Limits (the string literal right after each field), from its source."""
-    tree = ast.parse(inspect.getsource(codec))
+    tree = ast.parse(inspect.getsource(msgpack_wire))
     docs: dict[str, str] = {}
     for node in ast.walk(tree):
         if isinstance(node, ast.ClassDef) and node.name == Limits.__name__:
@@ -151,7 +152,7 @@ def render_reference() -> str:
     lines += ["### Wire dtypes", ""]
     lines += _table(
         ["dtype string", "numpy name", "item size (bytes)"],
-        [[f"`{s}`", f"`{dt.name}`", dt.itemsize] for s, dt in codec.WIRE_DTYPES.items()],
+        [[f"`{s}`", f"`{dt.name}`", dt.itemsize] for s, dt in msgpack_wire.WIRE_DTYPES.items()],
     )
     lines.append("")
 

@@ -13,25 +13,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from proto.actions import ACTION_DIM
-from proto.codec import (
-    Arr,
-    Bool,
-    Float,
-    Int,
-    ListOf,
-    MapOf,
-    Message,
-    Nested,
-    Opt,
-    ProtocolError,
-    Str,
-    spec,
-)
+from proto.codec import Message
+from proto.msgpack_wire import ProtocolError
+from proto.specs import ID_PATTERN, Arr, Bool, Float, Int, ListOf, MapOf, Nested, Opt, Str, spec
 
 TASKS = ("block_pull", "block_pick", "drawer_open", "surgical_grasp_any")
 POLICY_KINDS = ("expert_probe", "expert_direct", "random", "learned")
 AUGMENTATION_KINDS = ("isometric", "mea", "mea+isometric")
-ID_PATTERN = r"[A-Za-z0-9_.-]{1,96}"
 OBJECT_SYMMETRY = {"block_pull": 4, "block_pick": 4, "drawer_open": 1, "surgical_grasp_any": 1}
 """Order n of each task's objects' rotational symmetry about z: an object's yaw in
 ``object_poses`` means the same body placement modulo 2 pi / n (square blocks 4, a drawer 1)."""

@@ -4,7 +4,7 @@ The messages themselves travel as msgpack (see proto/README.md); these schemas d
 maps so that tools that understand JSON Schema (MCAP viewers, validators, docs) can read them.
 MCAP recordings embed :func:`json_schema_text` as each channel's schema (encoding ``jsonschema``).
 
-Mapping of the specs of :mod:`proto.codec`:
+Mapping of the specs of :mod:`proto.specs`:
 
 * ``Str`` -> ``string`` with ``enum`` (choices), an anchored ``pattern`` and ``maxLength``;
 * ``Int`` -> ``integer``, ``Float`` -> ``number`` (finite: JSON has no NaN), with ``minimum`` /
@@ -18,7 +18,7 @@ Mapping of the specs of :mod:`proto.codec`:
 
 Top-level messages also pin ``_type`` and ``_v`` with ``const``; unknown fields are refused
 (``additionalProperties: false``) like the decoder does. What JSON Schema cannot express is left
-to the decoder: the decode-time :class:`~proto.codec.Limits`, the agreement of symbolic dims
+to the decoder: the decode-time :class:`~proto.msgpack_wire.Limits`, the agreement of symbolic dims
 between arrays and each message's cross-field ``validate`` rules. Output is deterministic.
 """
 
@@ -28,22 +28,9 @@ import dataclasses
 import json
 from typing import Any
 
-from proto.codec import (
-    ANY_SHAPE,
-    EXT_NDARRAY,
-    WIRE_DTYPES,
-    Arr,
-    Bool,
-    Float,
-    Int,
-    ListOf,
-    MapOf,
-    Message,
-    Nested,
-    Opt,
-    Spec,
-    Str,
-)
+from proto.codec import Message
+from proto.msgpack_wire import EXT_NDARRAY, WIRE_DTYPES
+from proto.specs import ANY_SHAPE, Arr, Bool, Float, Int, ListOf, MapOf, Nested, Opt, Spec, Str
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
 NDARRAY_KEYWORD = "x-mea-ndarray"

@@ -13,10 +13,11 @@ from dataclasses import dataclass
 from proto.codec import Message
 from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.episode import Episode
+from proto.specs import ID_PATTERN
 from proto.weights import WeightsAnnouncement, WeightsBlob
 
 PREFIX = "mea/v1"
-CHUNK = re.compile(r"[A-Za-z0-9_.-]{1,96}")
+CHUNK = re.compile(ID_PATTERN)  # ids (actor, learner, instance) travel in key expressions
 
 
 class Priority(enum.Enum):

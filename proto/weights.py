@@ -8,19 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from proto.codec import (
-    ANY_SHAPE,
-    WIRE_DTYPES,
-    Arr,
-    Float,
-    Int,
-    MapOf,
-    Message,
-    ProtocolError,
-    Str,
-    spec,
-    wire_dtype,
-)
+from proto.codec import Message
+from proto.msgpack_wire import WIRE_DTYPES, ProtocolError, wire_dtype
+from proto.specs import ANY_SHAPE, ID_PATTERN, Arr, Float, Int, MapOf, Str, spec
 
 ALGORITHMS = ("equi_rsac", "rsac", "gasv2")
 DIGEST_PATTERN = r"[0-9a-f]{64}"
@@ -50,7 +40,7 @@ class WeightsAnnouncement(Message):
     digest: str = spec(Str(pattern=DIGEST_PATTERN), "sha256 of the tensors (see `tensors_digest`)")
     byte_size: int = spec(Int(0, 2**40), "encoded size of the WeightsBlob in bytes")
     created_at: float = spec(Float(0.0), "UNIX time (s) the version was made")
-    run_id: str = spec(Str(pattern=r"[A-Za-z0-9_.-]{1,96}"), "training run (version lineage) id")
+    run_id: str = spec(Str(pattern=ID_PATTERN), "training run (version lineage) id")
 
 
 @dataclass(frozen=True)
@@ -64,7 +54,7 @@ class WeightsBlob(Message):
     algorithm: str = spec(Str(choices=ALGORITHMS), "algorithm")
     digest: str = spec(Str(pattern=DIGEST_PATTERN), "sha256 of the tensors")
     created_at: float = spec(Float(0.0), "UNIX time (s) the version was made")
-    run_id: str = spec(Str(pattern=r"[A-Za-z0-9_.-]{1,96}"), "training run id")
+    run_id: str = spec(Str(pattern=ID_PATTERN), "training run id")
     config_json: str = spec(Str(max_len=65536), "JSON of the network config needed to rebuild the policy")
     tensors: dict = spec(
         MapOf(Arr(("float32", "float16", "int64", "bool"), ANY_SHAPE), key_pattern=TENSOR_NAME),

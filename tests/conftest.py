@@ -17,6 +17,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # `tests.helpers` must import here and in spawned children
     sys.path.insert(0, str(ROOT))
 
+pytest.register_assert_rewrite("tests.helpers.wire_asserts")  # detailed failures from its asserts
+
 from proto.episode import Episode  # noqa: E402
 from proto.weights import WeightsBlob  # noqa: E402
 from tests.helpers import build_episode, build_weights, find_free_port  # noqa: E402

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 from services.common.config import ServiceConfig
-from services.tasks import EXPERT_STYLES, TASKS, EnvSettings
+from services.tasks import EXPERT_STYLES, TASK_CLASSES, EnvSettings
 from services.tasks.camera import CameraSettings
 
 POLICIES = ("expert", "random", "learned")
@@ -43,8 +43,8 @@ class ActorConfig:
     """Identity, transport, metrics and logs."""
 
     def __post_init__(self) -> None:
-        if self.task not in TASKS:
-            raise ValueError(f"task must be one of {sorted(TASKS)}, not {self.task!r}")
+        if self.task not in TASK_CLASSES:
+            raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
         if self.policy not in POLICIES:
             raise ValueError(f"policy must be one of {POLICIES}, not {self.policy!r}")
         if self.expert_style not in ("alternate", *EXPERT_STYLES):

@@ -26,12 +26,7 @@ height (pivot 0.39 m) that goes below L_z part-way, like the scripted experts.
 from __future__ import annotations
 
 import dataclasses
-import importlib.metadata
-import math
 import multiprocessing as mp
-import os
-import platform
-import socket
 import statistics
 import sys
 import time
@@ -53,6 +48,7 @@ from services.augmenter.core.pipeline import (
     shared_rotation,
     with_images,
 )
+from services.bench.harness import finite, free_port, host_meta, percentile, wait_alive
 from services.bench.report import emit
 
 TARGET_PER_CORE = 5_000.0
@@ -169,17 +165,6 @@ def make_episodes(cfg: AugmentBenchConfig, n: int, offset: int = 0) -> list[Epis
 # --------------------------------------------------------------------------------------------
 
 
-def _pct(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values, dtype=np.float64), q))
-
-
-def _finite(x: float) -> float:
-    x = float(x)
-    if not math.isfinite(x):
-        raise RuntimeError(f"non-finite measurement {x}")
-    return x
-
-
 def _log(msg: str) -> None:
     print(f"[bench augment] {msg}", file=sys.stderr, flush=True)
 
@@ -235,9 +220,9 @@ def bench_throughput(cfg: AugmentBenchConfig) -> tuple[list[dict[str, Any]], lis
             "mea_empty": empty,
             "mea_cut": cuts,
             "guard_rejections": rejections,
-            "ms_per_raw": _finite(wall / n * 1e3),
-            "transitions_per_s_wall": _finite(transitions / wall),
-            "transitions_per_s_per_core": _finite(per_core),
+            "ms_per_raw": finite(wall / n * 1e3),
+            "transitions_per_s_wall": finite(transitions / wall),
+            "transitions_per_s_per_core": finite(per_core),
             "target_per_core": TARGET_PER_CORE,
             "met": per_core >= TARGET_PER_CORE,
         }
@@ -272,18 +257,18 @@ def bench_throughput(cfg: AugmentBenchConfig) -> tuple[list[dict[str, Any]], lis
         breakdown.append(
             {
                 "stage": label,
-                "ms_per_raw": _finite(total / n * 1e3),
-                "share_of_pipeline_pct": _finite(100 * total / pipeline_s) if in_pipeline else None,
-                "transitions_per_s_if_alone": _finite(transitions / total) if total > 0 else None,
+                "ms_per_raw": finite(total / n * 1e3),
+                "share_of_pipeline_pct": finite(100 * total / pipeline_s) if in_pipeline else None,
+                "transitions_per_s_if_alone": finite(transitions / total) if total > 0 else None,
             }
         )
     service_s = pipeline_s + sum(stage["decode"]) + sum(stage["encode"])
     breakdown.append(
         {
             "stage": "service path per core (decode + pipeline + encode)",
-            "ms_per_raw": _finite(service_s / n * 1e3),
+            "ms_per_raw": finite(service_s / n * 1e3),
             "share_of_pipeline_pct": None,
-            "transitions_per_s_if_alone": _finite(transitions / service_s),
+            "transitions_per_s_if_alone": finite(transitions / service_s),
         }
     )
     return headline, breakdown
@@ -292,12 +277,6 @@ def bench_throughput(cfg: AugmentBenchConfig) -> tuple[list[dict[str, Any]], lis
 # --------------------------------------------------------------------------------------------
 # Latency through the service
 # --------------------------------------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def service_main(service_cfg) -> None:
@@ -318,15 +297,6 @@ def _stop(proc) -> None:
     if proc.is_alive():
         proc.kill()
         proc.join(timeout=5.0)
-
-
-def _wait_alive(watch, who: tuple[str, str], proc, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while not watch.wait_for(lambda alive: who in alive, timeout=0.5):
-        if not proc.is_alive():
-            raise RuntimeError(f"augmenter exited (code {proc.exitcode}) before becoming ready")
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"augmenter not alive after {timeout:.0f} s")
 
 
 def bench_latency(cfg: AugmentBenchConfig) -> list[dict[str, Any]]:
@@ -367,7 +337,7 @@ def bench_latency(cfg: AugmentBenchConfig) -> list[dict[str, Any]]:
         watch = client.watch_alive("augmenter")
         proc = ctx.Process(target=service_main, args=(service_cfg,), name=INSTANCE, daemon=True)
         proc.start()
-        _wait_alive(watch, ("augmenter", INSTANCE), proc, cfg.timeout_s)
+        wait_alive(watch, ("augmenter", INSTANCE), proc, cfg.timeout_s)
         for i, (ep, payload) in enumerate(zip(episodes, payloads, strict=True)):
             ids = expected[ep.episode_id]
             t0 = time.monotonic()
@@ -411,21 +381,17 @@ def bench_latency(cfg: AugmentBenchConfig) -> list[dict[str, Any]]:
         {
             "episodes": len(last),
             "outputs_per_raw": float(n_out),
-            "first_output_p50_ms": _finite(_pct(first, 50) * 1e3),
-            "all_outputs_p50_ms": _finite(_pct(last, 50) * 1e3),
-            "all_outputs_p99_ms": _finite(_pct(last, 99) * 1e3),
-            "all_outputs_max_ms": _finite(max(last) * 1e3),
-            "local_augment_p50_ms": _finite(_pct(augment_local, 50) * 1e3),
-            "transport_overhead_p50_ms": _finite((_pct(last, 50) - _pct(augment_local, 50)) * 1e3),
+            "first_output_p50_ms": finite(percentile(first, 50) * 1e3),
+            "all_outputs_p50_ms": finite(percentile(last, 50) * 1e3),
+            "all_outputs_p99_ms": finite(percentile(last, 99) * 1e3),
+            "all_outputs_max_ms": finite(max(last) * 1e3),
+            "local_augment_p50_ms": finite(percentile(augment_local, 50) * 1e3),
+            "transport_overhead_p50_ms": finite((percentile(last, 50) - percentile(augment_local, 50)) * 1e3),
         }
     ]
 
 
 def _meta(cfg: AugmentBenchConfig, elapsed: float) -> dict[str, Any]:
-    try:
-        zenoh_version = importlib.metadata.version("eclipse-zenoh")
-    except importlib.metadata.PackageNotFoundError:
-        zenoh_version = "unknown"
     conf = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "augment"}
     s = cfg.augment
     return {
@@ -445,11 +411,7 @@ def _meta(cfg: AugmentBenchConfig, elapsed: float) -> dict[str, Any]:
         "service (client) in a spawned process; tcp 127.0.0.1",
         "episodes": f"synthetic demos, 3 segments x {cfg.points_per_segment} points, "
         f"T in [{cfg.min_steps}, {cfg.max_steps}]",
-        "python": platform.python_version(),
-        "zenoh": zenoh_version,
-        "numpy": np.__version__,
-        "cpus": os.cpu_count(),
-        "machine": platform.machine(),
+        **host_meta(),
         "elapsed_s": round(elapsed, 2),
     }
 

@@ -34,9 +34,17 @@ import torch
 
 from proto.episode import Episode
 from proto.weights import WeightsBlob
+from services.bench.harness import (
+    client_bus,
+    free_port,
+    next_result,
+    percentile,
+    run_with_bus,
+    stop_child,
+    wait_alive,
+)
 from services.bench.reference import PUBLIC_UPDATE_SECONDS_BY_THREADS
 from services.bench.report import emit
-from services.bench.transport import _client_bus, _get, _pct, _stop, _wait_alive, free_port
 from services.learner.core.batch import to_batch
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
@@ -167,33 +175,29 @@ def bench_replay() -> list[dict[str, Any]]:
 
 def consumer_main(endpoint: str, instance: str, results) -> None:
     """Poll for newer weights every millisecond; load each into a PolicyRuntime and act once."""
-    bus = None
-    try:
-        from services.common.weights import WeightsClient
+    run_with_bus(endpoint, results, lambda bus: _consume_weights(bus, instance, results))
 
-        torch.set_num_threads(1)
-        bus = _client_bus(endpoint)
-        client = WeightsClient(bus, timeout=10.0)
-        bus.declare_alive(CONSUMER, instance)
-        runtime = PolicyRuntime(deterministic=True)
-        image = np.zeros((2, 84, 84), np.uint8)
-        deadline = time.monotonic() + 600
-        while time.monotonic() < deadline:
-            blob = client.poll()
-            if blob is None:
-                time.sleep(0.001)
-                continue
-            if blob.config_json == "stop":
-                break
-            runtime.load(blob)
-            runtime.reset()
-            runtime.act(image)
-            results.put(("loaded", instance, blob.version, time.time()))
-    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises
-        results.put(("error", repr(exc)))
-    finally:
-        if bus is not None:
-            bus.close()
+
+def _consume_weights(bus, instance: str, results) -> None:
+    from services.common.weights import WeightsClient
+
+    torch.set_num_threads(1)
+    client = WeightsClient(bus, timeout=10.0)
+    bus.declare_alive(CONSUMER, instance)
+    runtime = PolicyRuntime(deterministic=True)
+    image = np.zeros((2, 84, 84), np.uint8)
+    deadline = time.monotonic() + 600
+    while time.monotonic() < deadline:
+        blob = client.poll()
+        if blob is None:
+            time.sleep(0.001)
+            continue
+        if blob.config_json == "stop":
+            break
+        runtime.load(blob)
+        runtime.reset()
+        runtime.act(image)
+        results.put(("loaded", instance, blob.version, time.time()))
 
 
 def bench_weights(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
@@ -206,7 +210,7 @@ def bench_weights(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
     procs, rows = [], []
     try:
         router = ZenohBus(ZenohConfig(mode="router", listen=(endpoint,), connect=()))
-        server_bus = _client_bus(endpoint)
+        server_bus = client_bus(endpoint)
         server = WeightsServer(server_bus, "learner-bench")
         results = ctx.Queue()
         watch = server_bus.watch_alive(CONSUMER)
@@ -216,7 +220,7 @@ def bench_weights(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
             p.start()
             procs.append(p)
         for p, name in zip(procs, names, strict=True):
-            _wait_alive(watch, (CONSUMER, name), p, 60.0)
+            wait_alive(watch, (CONSUMER, name), p, 60.0)
         version = -1
         for preset in cfg.latency_presets:
             spec = PolicySpec(LEARNER_PRESETS[preset].net)
@@ -227,14 +231,14 @@ def bench_weights(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
                 blob = WeightsBlob.create(version, "equi_rsac", "bench", actor_tensors(actor), spec.to_json())
                 sizes.append(server.publish(blob))
                 for _ in names:
-                    item = _get(results, procs[0], 60.0)
+                    item = next_result(results, procs[0], 60.0)
                     if item[2] != version:
                         raise RuntimeError(f"consumer loaded version {item[2]}, expected {version}")
                     latencies.append(item[3] - blob.created_at)
             rows.append({
                 "preset": preset, "actor params": sum(p.numel() for p in actor.parameters()),
                 "blob bytes": sizes[0], "consumers": cfg.consumers, "versions": cfg.versions,
-                "publish -> loaded p50 ms": 1e3 * _pct(latencies, 50), "p99 ms": 1e3 * _pct(latencies, 99),
+                "publish -> loaded p50 ms": 1e3 * percentile(latencies, 50), "p99 ms": 1e3 * percentile(latencies, 99),
                 "max ms": 1e3 * max(latencies),
             })  # fmt: skip
             _log(f"weights {preset}: p50 {rows[-1]['publish -> loaded p50 ms']:.1f} ms")
@@ -245,7 +249,7 @@ def bench_weights(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
             p.join(timeout=10)
     finally:
         for p in procs:
-            _stop(p)
+            stop_child(p)
         if server_bus is not None:
             server_bus.close()
         if router is not None:

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -47,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from services.bench.harness import free_port
 from services.bench.reference import PUBLIC_UPDATE_SECONDS
 from services.bench.report import emit
 
@@ -144,12 +144,6 @@ def _log(msg: str) -> None:
     print(f"[bench learning] {msg}", file=sys.stderr, flush=True)
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def run_dir_of(cfg: LearningBenchConfig, variant: str, seed: int) -> Path:
     return cfg.out / f"{cfg.task}-{variant}-s{seed}"
 
@@ -231,7 +225,7 @@ def train(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> Pat
         args = ["--resume", str(run_dir)]
     else:
         args = run_args(cfg, variant, seed, s)
-    cmd = [sys.executable, "-m", "services.cli", "run", *args, "--listen", f"tcp/127.0.0.1:{_port()}",
+    cmd = [sys.executable, "-m", "services.cli", "run", *args, "--listen", f"tcp/127.0.0.1:{free_port()}",
            "--metrics-port", "0", "--log-format", "json"]  # fmt: skip
     _log(f"{run_dir.name}: training ({s.budget:,} env steps) ...")
     t0 = time.monotonic()

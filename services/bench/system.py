@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from services.bench.harness import free_port, percentile
 from services.bench.report import emit
-from services.bench.transport import _pct, free_port
 
 
 @dataclass(frozen=True)
@@ -184,8 +184,8 @@ def bench_stack(cfg: SystemBenchConfig) -> tuple[dict[str, Any], list[dict[str, 
     }  # fmt: skip
     lat = [{
         "consumers": len(col.loads), "versions loaded": sum(len(v) for v in col.loads.values()),
-        "publish -> loaded p50 ms": 1e3 * _pct(latencies, 50) if latencies else None,
-        "p99 ms": 1e3 * _pct(latencies, 99) if latencies else None,
+        "publish -> loaded p50 ms": 1e3 * percentile(latencies, 50) if latencies else None,
+        "p99 ms": 1e3 * percentile(latencies, 99) if latencies else None,
     }]  # fmt: skip
     return row, lat
 

@@ -75,7 +75,7 @@ from services.evaluator.core.metrics import (
     run_improvement_timestep,
     summarize,
 )
-from services.tasks import TASKS, EnvSettings, ManipulationEnv, make_env
+from services.tasks import TASK_CLASSES, EnvSettings, ManipulationEnv, make_env
 from services.tasks.camera import CameraSettings
 
 log = logging.getLogger(__name__)
@@ -121,8 +121,8 @@ class EvaluatorConfig:
     """Identity, transport, metrics and logs."""
 
     def __post_init__(self) -> None:
-        if self.task not in TASKS:
-            raise ValueError(f"task must be one of {sorted(TASKS)}, not {self.task!r}")
+        if self.task not in TASK_CLASSES:
+            raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
         if min(self.every_env_steps, self.final_env_steps, self.final_episodes, self.max_evaluations,

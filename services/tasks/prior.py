@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from proto.actions import DELTA_THETA, DELTA_XYZ
+from services.geometry import rotate_z
 from services.tasks.env import ManipulationEnv
 
 
@@ -29,14 +30,6 @@ def chamfer(a: np.ndarray, b: np.ndarray) -> float:
         return math.inf
     d = np.sqrt(((a[:, None, :] - b[None, :, :]) ** 2).sum(-1))
     return float((d.min(axis=1).mean() + d.min(axis=0).mean()) / 2)
-
-
-def _rot_z(points: np.ndarray, angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    out = points.copy()
-    out[:, 0] = c * points[:, 0] - s * points[:, 1]
-    out[:, 1] = s * points[:, 0] + c * points[:, 1]
-    return out
 
 
 def best_fit_yaw(
@@ -54,7 +47,7 @@ def best_fit_yaw(
     if len(after) > max_points:
         after = after[rng.choice(len(after), max_points, replace=False)]
     offsets = np.radians(np.arange(-span_deg, span_deg + 1e-9, step_deg))
-    scores = [chamfer(_rot_z(before, guess + o), after) for o in offsets]
+    scores = [chamfer(rotate_z(before, guess + o), after) for o in offsets]
     return guess + float(offsets[int(np.argmin(scores))])
 
 

@@ -22,9 +22,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from proto.codec import EXT_NDARRAY, Message, ProtocolError, decode, pack
+from proto.codec import Message, decode
 from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
+from proto.msgpack_wire import EXT_NDARRAY, ProtocolError, pack
 from proto.weights import WeightsBlob
 
 pytestmark = pytest.mark.contract

@@ -21,10 +21,12 @@ import numpy as np
 import pytest
 
 import proto
-from proto.codec import Arr, Message, Opt, ProtocolError, decode, field_table, pack
+from proto.codec import Message, decode, field_table
 from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
 from proto.jsonschema import DIALECT, NDARRAY_KEYWORD, json_schema, json_schema_text
+from proto.msgpack_wire import ProtocolError, pack
+from proto.specs import Arr, Opt
 from proto.weights import WeightsBlob
 from tests.helpers import build_episode, build_weights
 

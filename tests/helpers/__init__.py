@@ -8,15 +8,16 @@ the same arguments get byte-identical encodings.
 from __future__ import annotations
 
 import dataclasses
-import socket
 import threading
 
 import numpy as np
 
 from proto.actions import ACTION_DIM
-from proto.codec import Message, pack
+from proto.codec import Message
 from proto.episode import Episode
+from proto.msgpack_wire import pack
 from proto.weights import WeightsBlob
+from services.bench.harness import free_port
 
 SEGMENTS = ("gripper", "object_0", "object_1")
 """Segment names of every factory-made episode: the gripper, then two objects."""
@@ -30,9 +31,7 @@ _port_lock = threading.Lock()
 def find_free_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago, never the same one twice per process."""
     for _ in range(100):
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
+        port = free_port()
         with _port_lock:
             if port not in _issued_ports:
                 _issued_ports.add(port)

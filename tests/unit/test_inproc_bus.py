@@ -6,8 +6,8 @@ import threading
 
 import pytest
 
-from proto.codec import ProtocolError, pack
 from proto.control import Heartbeat
+from proto.msgpack_wire import ProtocolError, pack
 from proto.topics import ALIVE, EPISODES_AUGMENTED, EPISODES_RAW, STATUS, WEIGHTS_ANNOUNCE, WEIGHTS_LATEST
 from services.common.bus.inproc import Hub, InProcBus, key_matches
 from tests.helpers import assert_messages_equal

@@ -19,10 +19,11 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from proto.codec import Message, ProtocolError
+from proto.codec import Message
 from proto.control import Heartbeat
 from proto.episode import Augmentation, Episode
 from proto.jsonschema import json_schema_text
+from proto.msgpack_wire import ProtocolError
 from services.common.mcap_io import (
     LIBRARY,
     MESSAGE_ENCODING,

@@ -26,6 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from proto.episode import Augmentation, Episode
+from services.geometry import rotate_quat_z, turn_xy
 
 WORKSPACE_CENTRE = (0.5, 0.0)
 ROTATION_DRAWS = 32
@@ -46,11 +47,7 @@ def rotate_points(points: np.ndarray, phi: float) -> np.ndarray:
     """x, y of ``points`` (..., >= 2) turned by ``phi`` about the vertical (float64 math, one
     rounding to float32)."""
     c, s = cos_sin(phi)
-    p = np.asarray(points, np.float64)
-    out = np.array(points, dtype=np.float32, copy=True)
-    out[..., 0] = c * p[..., 0] - s * p[..., 1]
-    out[..., 1] = s * p[..., 0] + c * p[..., 1]
-    return out
+    return turn_xy(np.asarray(points, np.float64), c, s, out=np.array(points, dtype=np.float32, copy=True))
 
 
 def rotation_fits(actions: np.ndarray, phi: float) -> bool:
@@ -85,13 +82,6 @@ def draw_rotation(
     return float(int(rng.integers(4)) * QUARTER)
 
 
-def _rotate_quat_z(quats: np.ndarray, phi: float) -> np.ndarray:
-    """Pre-multiply (x, y, z, w) quaternions by a rotation of phi about world z."""
-    qz, qw = math.sin(phi / 2), math.cos(phi / 2)
-    x, y, z, w = quats[..., 0], quats[..., 1], quats[..., 2], quats[..., 3]
-    return np.stack([qw * x - qz * y, qw * y + qz * x, qw * z + qz * w, qw * w - qz * z], axis=-1)
-
-
 def rotate_episode(ep: Episode, phi: float, *, centre: tuple[float, float] = WORKSPACE_CENTRE) -> dict:
     """The arrays of ``ep`` seen in a world rotated by ``phi`` about the vertical."""
     c = np.array([*centre, 0.0], np.float32)
@@ -101,7 +91,7 @@ def rotate_episode(ep: Episode, phi: float, *, centre: tuple[float, float] = WOR
     pose[:, 3] = pose[:, 3] + phi
     objects = np.array(ep.object_poses, np.float32, copy=True)
     objects[..., :3] = rotate_points(objects[..., :3] - c, phi) + c
-    objects[..., 3:] = _rotate_quat_z(objects[..., 3:].astype(np.float64), phi)
+    objects[..., 3:] = rotate_quat_z(objects[..., 3:].astype(np.float64), phi)
     return {
         "points": rotate_points(ep.points, phi),
         "actions": actions,

@@ -41,6 +41,7 @@ import numpy as np
 
 from proto.actions import DELTA_THETA, DELTA_XYZ, THETA, XYZ
 from proto.episode import Augmentation, Episode
+from services.geometry import rotate_z_per_step, turn_xy, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -131,7 +132,7 @@ def free_motion_start(ep: Episode, hp: int, s: MeaSettings) -> int:
     moved = np.diff(pose[:, :3], axis=0)
     commanded = ep.actions[:hp, XYZ].astype(np.float64) * DELTA_XYZ
     turned = np.diff(pose[:, 3]) - ep.actions[:hp, THETA].astype(np.float64) * DELTA_THETA
-    turned = (turned + math.pi) % (2 * math.pi) - math.pi
+    turned = wrap_angle(turned)
     off = (np.linalg.norm(moved - commanded, axis=1) > s.prior_tolerance) | (np.abs(turned) > s.yaw_tolerance)
     bad = np.nonzero(off)[0]
     return int(bad[-1]) + 1 if len(bad) else 0
@@ -144,11 +145,8 @@ def free_motion_start(ep: Episode, hp: int, s: MeaSettings) -> int:
 
 def rotate_xy(v: np.ndarray, angle: float) -> np.ndarray:
     """Rotate the first two components of ``v`` (..., >=2) by ``angle`` about z."""
-    c, s = math.cos(angle), math.sin(angle)
-    out = np.array(v, dtype=np.float64, copy=True)
-    out[..., 0] = c * v[..., 0] - s * v[..., 1]
-    out[..., 1] = s * v[..., 0] + c * v[..., 1]
-    return out
+    # computed in v's dtype, stored as float64
+    return turn_xy(v, math.cos(angle), math.sin(angle), out=np.array(v, dtype=np.float64, copy=True))
 
 
 def draw_group(rng: np.random.Generator, s: MeaSettings) -> np.ndarray:
@@ -244,22 +242,13 @@ def backward_pass(ep: Episode, s: MeaSettings, rng: np.random.Generator) -> MeaD
 # --------------------------------------------------------------------------------------------
 
 
-def _rotate_points(points: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """Rotate (T, P, 3) points about z by a per-step angle (T,)."""
-    c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
-    out = points.copy()
-    out[..., 0] = c * points[..., 0] - s * points[..., 1]
-    out[..., 1] = s * points[..., 0] + c * points[..., 1]
-    return out
-
-
 def apply_draw(ep: Episode, draw: MeaDraw) -> dict[str, np.ndarray]:
     """Augmented arrays for steps draw.start..T (observations) and draw.start..T-1 (transitions)."""
     s0 = draw.start
     points = ep.points[s0:].astype(np.float64, copy=True)
     D, theta = draw.offset_xyz[s0:], draw.offset_yaw[s0:]
     points[:, 1:] -= D[:, None, None, :]  # objects translated by -D_t
-    points[:, 0] = _rotate_points(points[:, 0], theta)  # gripper turned by Theta_t about its centroid
+    points[:, 0] = rotate_z_per_step(points[:, 0], theta)  # gripper turned by Theta_t about its centroid
     pose = ep.gripper_pose[s0:].astype(np.float64, copy=True)
     pose[:, :3] += D
     pose[:, 3] += theta

@@ -18,7 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from proto.codec import DEFAULT_LIMITS, Limits, Message, ProtocolError
+from proto.codec import Message
+from proto.msgpack_wire import DEFAULT_LIMITS, Limits, ProtocolError
 from proto.topics import ALIVE, Kind, Topic, key, parse
 
 log = logging.getLogger(__name__)

@@ -6,7 +6,8 @@ import logging
 import threading
 from dataclasses import dataclass, field
 
-from proto.codec import DEFAULT_LIMITS, Limits, Message
+from proto.codec import Message
+from proto.msgpack_wire import DEFAULT_LIMITS, Limits
 from proto.topics import ALIVE, Kind, Topic
 from services.common.bus.base import AliveWatch, Bus, Delivery, QueryHandler, Subscription
 

@@ -17,7 +17,8 @@ from typing import Literal
 
 import zenoh
 
-from proto.codec import DEFAULT_LIMITS, Limits, Message
+from proto.codec import Message
+from proto.msgpack_wire import DEFAULT_LIMITS, Limits
 from proto.topics import ALIVE, Congestion, Kind, Topic
 from services.common.bus.base import AliveWatch, Bus, Delivery, QueryHandler, Subscription
 
