@@ -69,19 +69,15 @@ from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.weights import WeightsClient
 from services.evaluator.core.metrics import (
     EvalSummary,
-    append_history,
     episode_result,
-    read_history,
     run_improvement_timestep,
     summarize,
 )
+from services.evaluator.history import HISTORY, append_history, read_history
 from services.tasks import TASKS, EnvSettings, ManipulationEnv, make_env
 from services.tasks.camera import CameraSettings
 
 log = logging.getLogger(__name__)
-
-HISTORY = Path("eval") / "history.jsonl"
-"""Where the eval history lives inside a run directory."""
 
 
 @dataclasses.dataclass(frozen=True)

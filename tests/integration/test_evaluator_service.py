@@ -16,7 +16,7 @@ from proto.weights import WeightsBlob
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsServer
-from services.evaluator.core.metrics import read_history
+from services.evaluator.history import read_history
 from services.evaluator.main import EvaluatorConfig, launch_args, run
 
 pytestmark = pytest.mark.integration
@@ -236,7 +236,7 @@ def test_cadence_first_version_then_every_env_steps_then_the_budget(tmp_path):
 
 
 def test_a_restarted_evaluator_keeps_the_cadence_and_improvement_from_its_history(tmp_path):
-    from services.evaluator.core.metrics import append_history
+    from services.evaluator.history import append_history
 
     for steps, success in ((0, 0.0), (250, 0.2), (500, 0.1)):
         append_history(
