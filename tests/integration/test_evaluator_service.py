@@ -16,8 +16,9 @@ from proto.weights import WeightsBlob
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsServer
+from services.evaluator.config import EvaluatorConfig
 from services.evaluator.history import read_history
-from services.evaluator.main import EvaluatorConfig, launch_args, run
+from services.evaluator.main import launch_args, run
 
 pytestmark = pytest.mark.integration
 INSTANCE = "evaluator-t"
@@ -157,7 +158,7 @@ def test_launch_args_pass_the_task_the_run_dir_and_the_runs_eval_settings(tmp_pa
                     "--episodes", "4", "--final-env-steps", "2000", "--final-episodes", "7",
                     "--depth-image"]  # fmt: skip
     from services.common import config
-    from services.evaluator.main import PRESETS
+    from services.evaluator.config import PRESETS
 
     cfg = config.parse(EvaluatorConfig, PRESETS, args, "mea evaluator", "")
     assert (cfg.task, cfg.run_dir, cfg.every_env_steps, cfg.episodes) == ("block_pick", tmp_path, 500, 4)
