@@ -7,6 +7,7 @@ from pathlib import Path
 
 from proto.seeds import EVAL_SEED_BASE
 from services.common.config import ServiceConfig
+from services.evaluator.core.schedule import Schedule
 from services.tasks import TASKS, EnvSettings
 from services.tasks.camera import CameraSettings
 
@@ -67,19 +68,24 @@ class EvaluatorConfig:
         )
 
     @property
+    def schedule(self) -> Schedule:
+        """The cadence and evaluation sizes these settings give (``services.evaluator.core.schedule``)."""
+        return Schedule(episodes=self.episodes, every_env_steps=self.every_env_steps, seed_base=self.seed_base,
+                        final_env_steps=self.final_env_steps, final_episodes=self.final_episodes,
+                        first_gate_wait=self.first_gate_wait)  # fmt: skip
+
+    @property
     def seeds(self) -> tuple[int, ...]:
         """The held-out seeds of an evaluation before the budget."""
         return self.seeds_at(-1)
 
     def at_budget(self, env_steps: int) -> bool:
         """Is a version pulled at ``env_steps`` the run's final evaluation (at or past the budget)?"""
-        return 0 < self.final_env_steps <= env_steps
+        return self.schedule.at_budget(env_steps)
 
     def seeds_at(self, env_steps: int) -> tuple[int, ...]:
-        """The held-out seeds of an evaluation of a version pulled at ``env_steps``: ``episodes`` of
-        them, or ``final_episodes`` (when set) at the budget; always a prefix of one seed sequence."""
-        n = self.final_episodes if self.at_budget(env_steps) and self.final_episodes > 0 else self.episodes
-        return tuple(self.seed_base + k for k in range(n))
+        """The held-out seeds of an evaluation of a version pulled at ``env_steps`` (``Schedule.seeds_at``)."""
+        return self.schedule.seeds_at(env_steps)
 
 
 PRESETS = {"default": EvaluatorConfig()}

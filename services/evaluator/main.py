@@ -72,6 +72,7 @@ from services.evaluator.core.metrics import (
     run_improvement_timestep,
     summarize,
 )
+from services.evaluator.core.schedule import last_evaluated_env_steps
 from services.evaluator.history import HISTORY, append_history, read_history
 from services.tasks import ManipulationEnv, make_env
 
@@ -145,8 +146,8 @@ class Evaluator:
         self.improvement = run_improvement_timestep(self.records)
         if self.improvement is not None:
             self.mx["improvement"].set(self.improvement)
-        known = [r["env_steps"] for r in self.records if isinstance(r.get("env_steps"), int)]
-        self.last_env_steps: int | None = known[-1] if known else None  # cadence survives a restart
+        self.schedule = cfg.schedule
+        self.last_env_steps = last_evaluated_env_steps(self.records)  # the cadence survives a restart
         self.evaluations = 0  # by this process
         self.bad_weights = 0
         self.last: EvalSummary | None = None
@@ -175,17 +176,8 @@ class Evaluator:
         return self.cfg.max_evaluations > 0 and self.evaluations >= self.cfg.max_evaluations
 
     def due(self) -> bool:
-        """Is it time to pull (and evaluate) the newest version? See the module docstring."""
-        steps = self.gate.env_steps
-        if self.last_env_steps is None:  # nothing evaluated yet: as soon as a version exists
-            return steps >= 0 or time.monotonic() - self.started >= self.cfg.first_gate_wait
-        if steps < 0 or self.last_env_steps < 0:  # steps unknown: every new version
-            return True
-        if steps < self.last_env_steps:  # the learner went back (restarted): start the cadence afresh
-            return True
-        if 0 < self.cfg.final_env_steps <= steps and self.last_env_steps < self.cfg.final_env_steps:
-            return True  # the budget is reached: the run's last evaluation
-        return steps - self.last_env_steps >= self.cfg.every_env_steps
+        """Is it time to pull (and evaluate) the newest version? (``core.schedule.Schedule.due``)"""
+        return self.schedule.due(self.gate.env_steps, self.last_env_steps, time.monotonic() - self.started)
 
     def _bad(self, blob: WeightsBlob, reason: str, error: str) -> None:
         self.bad_weights += 1
