@@ -70,9 +70,9 @@ class EvaluatorConfig:
     @property
     def schedule(self) -> Schedule:
         """The cadence and evaluation sizes these settings give (``services.evaluator.core.schedule``)."""
-        return Schedule(episodes=self.episodes, every_env_steps=self.every_env_steps, seed_base=self.seed_base,
-                        final_env_steps=self.final_env_steps, final_episodes=self.final_episodes,
-                        first_gate_wait=self.first_gate_wait)  # fmt: skip
+        return Schedule(episodes=self.episodes, every_env_steps=self.every_env_steps,
+                        seed_base=self.seed_base, final_env_steps=self.final_env_steps,
+                        final_episodes=self.final_episodes, first_gate_wait=self.first_gate_wait)  # fmt: skip
 
     @property
     def seeds(self) -> tuple[int, ...]:
@@ -84,7 +84,7 @@ class EvaluatorConfig:
         return self.schedule.at_budget(env_steps)
 
     def seeds_at(self, env_steps: int) -> tuple[int, ...]:
-        """The held-out seeds of an evaluation of a version pulled at ``env_steps`` (``Schedule.seeds_at``)."""
+        """The held-out seeds of an evaluation of a version pulled at ``env_steps`` (see ``Schedule``)."""
         return self.schedule.seeds_at(env_steps)
 
 

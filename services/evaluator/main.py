@@ -4,39 +4,20 @@ Why a service of its own: evaluation must not touch the training envs (pitfall P
 env is the training env re-seeded, and its resets shift the training episodes' layout), must use
 the deterministic policy (tanh of the mean), and must compare every version on the same episodes.
 
-Each cycle (polled about 5 times a second):
-  1. Track the learner's latest ``ReplayGate``: its ``inserted_steps`` are the training env steps.
-  2. Decide whether an evaluation is due: the first version is evaluated as soon as it exists (after
-     waiting up to ``--first-gate-wait`` s for a gate, so it gets its env steps); after that, once
-     the gate's env steps have advanced by ``--every-env-steps`` since the last evaluation. With no
-     gate (steps unknown) every new version is due; if the gate goes back (a learner restarted in
-     this run dir), the next version is due at once. With ``--final-env-steps B`` (the run's budget)
-     the first version pulled once the steps reach B is evaluated off the cadence too, so a run
-     always ends with an evaluation at its budget. (`mea run` passes its ``--env-steps`` here, and
-     its evaluation sizes as ``--episodes`` and ``--final-episodes``: ``LAUNCH_FIELDS``.)
-  3. Only then pull the newest version with ``WeightsClient`` (pull-if-newer; versions announced in
-     between are never downloaded) and load it into a fresh deterministic ``PolicyRuntime``. A blob
-     that does not load (tensors that do not fit, a bad config) or wants the rendered depth image
-     from an evaluator started without ``--depth-image`` is logged, counted
-     (``mea_evaluator_bad_weights_total{reason}``) and skipped; the next newer version is tried
-     when announced.
-  4. Run ``--episodes`` M episodes in this service's own env, on the same seeds every time:
-     ``seed_base + k`` for k < M (1e9 and up: no actor ever trains on them). A version pulled at or
-     past the budget (``env_steps >= --final-env-steps > 0``) gets ``--final-episodes`` episodes
-     instead when set (the run's final, larger evaluation), on the same seed sequence: the first M
-     of its seeds are every other evaluation's. The policy input is
-     ``services.actor.rollout.policy_input(obs, observation)`` (the voxel ``policy_image`` or the
-     depth image, as the weights' spec says), the rollout ``services.actor.rollout.run_episode``.
-     While episodes run, gates and weights announcements keep being consumed (their subscriptions
-     are bounded and BLOCK: a full one would stall this process's transport and the learner).
-  5. Summarise with ``services.evaluator.core.metrics``, publish an ``EvalReport`` on EVAL_REPORTS
-     (``env_steps`` = the gate's inserted steps when the version was pulled, -1 if no gate was
-     seen), append one line to ``RUN_DIR/eval/history.jsonl`` (with its ``episodes``, ``seeds`` and
-     ``at_budget``) and update metrics and heartbeat.
-
-A shutdown during an evaluation abandons it (nothing is reported for a partial evaluation).
-History lines already in the file (a restarted evaluator) count for the improvement timestep and
-for the cadence.
+This module is the transport shell around ``config`` (the flags; `mea run` passes its own through
+``LAUNCH_FIELDS``), ``core.schedule`` (when a version is due, on which held-out seeds),
+``evaluation`` (the episodes, the report and the history record), ``core.metrics`` and ``history``
+(``RUN_DIR/eval/history.jsonl``). Each cycle (about 5 a second) it tracks the learner's latest
+``ReplayGate`` (its ``inserted_steps`` are the training env steps) and, only once the schedule says
+a version is due, pulls the newest one (pull-if-newer: versions announced in between are never
+downloaded) into a fresh deterministic ``PolicyRuntime``. A blob that does not load, or wants the
+rendered depth image from an evaluator started without ``--depth-image``, is logged, counted and
+skipped. While episodes run, gates and weights announcements keep being consumed (bounded BLOCK
+subscriptions: a full one would stall this process's transport and the learner). Each evaluation
+is published as an ``EvalReport`` (``env_steps``: the gate's steps when the version was pulled, -1
+if no gate was seen) and appended to the history. A shutdown during an evaluation abandons it;
+history lines already in the file (a restarted evaluator) count for the improvement timestep and
+the cadence.
 
 Metrics (``mea_evaluator_*``): evaluations_total, success_rate, mean_return, mean_length,
 grasp_score, policy_version and env_steps of the last evaluation, episode_seconds (histogram),
@@ -53,11 +34,8 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from proto.control import EvalReport
 from proto.topics import EVAL_REPORTS, REPLAY_GATE
 from proto.weights import WeightsBlob
-from services.actor.episodes import EpisodeBuilder
-from services.actor.rollout import policy_input, run_episode
 from services.common import config
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
@@ -66,13 +44,9 @@ from services.common.replay_gate import GateTracker
 from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.weights import WeightsClient
 from services.evaluator.config import PRESETS, EvaluatorConfig
-from services.evaluator.core.metrics import (
-    EvalSummary,
-    episode_result,
-    run_improvement_timestep,
-    summarize,
-)
+from services.evaluator.core.metrics import EvalSummary, run_improvement_timestep
 from services.evaluator.core.schedule import last_evaluated_env_steps
+from services.evaluator.evaluation import EpisodeRunner, Evaluation
 from services.evaluator.history import HISTORY, append_history, read_history
 from services.tasks import ManipulationEnv, make_env
 
@@ -118,24 +92,19 @@ def _metrics(m: ServiceMetrics) -> dict:
 class Evaluator:
     """The service's loop body, separate from the bus setup so it can be driven directly."""
 
-    def __init__(
-        self,
-        cfg: EvaluatorConfig,
-        ctx: ServiceContext,
-        gate: GateTracker,
-        weights: WeightsClient,
-        env: ManipulationEnv | None = None,
-    ) -> None:
+    def __init__(self, cfg: EvaluatorConfig, ctx: ServiceContext, gate: GateTracker, weights: WeightsClient,
+                 env: ManipulationEnv | None = None) -> None:  # fmt: skip
         self.cfg = cfg
         self.ctx = ctx
         self.gate = gate
         self.weights = weights
         self.env = env or make_env(cfg.task, cfg.env_settings())  # its own env: never a training one
-        self.h_max = self.env.settings.max_steps
         self.mx = _metrics(ctx.metrics)
         self.mx["version"].set(-1)
         self.mx["env_steps"].set(-1)
         self.mx["improvement"].set(-1)
+        self.runner = EpisodeRunner(self.env, cfg.task, ctx.instance, self._keep_up,
+                                    self.mx["episode_seconds"].observe)  # fmt: skip
         self.history_path = cfg.run_dir / HISTORY if cfg.run_dir is not None else None
         self.records: list[dict] = []
         if self.history_path is not None and self.history_path.exists():
@@ -155,7 +124,6 @@ class Evaluator:
         self.last_steps = -1
         self.started = time.monotonic()
 
-    # ---------------------------------------------------------------------------------------
     def heartbeat_counters(self) -> dict[str, float]:
         """For the launcher table (the first four are shown); -1 means none yet / unknown."""
         out = {
@@ -215,78 +183,34 @@ class Evaluator:
         if self.ctx.shutdown.is_set():
             raise _StopRequestedError
 
-    def rollouts(self, runtime, seeds: Sequence[int] | None = None) -> list:
-        """Deterministic episodes on the fixed held-out seeds (default: the regular ``--episodes``)."""
-        results = []
-        observation = runtime.spec.observation
-        for seed in self.cfg.seeds if seeds is None else seeds:
-            t0 = time.perf_counter()
-            runtime.reset()
-            builder = EpisodeBuilder(task=self.cfg.task, seed=seed, actor_id=self.ctx.instance,
-                                     policy_version=runtime.version, policy_kind="eval", is_demo=False,
-                                     segments=self.env.segment_names)  # fmt: skip
-            b = run_episode(self.env, seed, lambda o: runtime.act(policy_input(o, observation)), builder,
-                            self._keep_up)  # fmt: skip
-            self.mx["episode_seconds"].observe(time.perf_counter() - t0)
-            results.append(episode_result(b.rewards, b.terminated, seed))
-        return results
-
     def evaluate(self, blob: WeightsBlob, runtime, env_steps: int) -> dict | None:
         """Evaluate one version, report it and record it; returns the history record (None if aborted)."""
-        t0, created = time.monotonic(), time.time()
-        seeds, at_budget = self.cfg.seeds_at(env_steps), self.cfg.at_budget(env_steps)
-        log.info(
-            "evaluating",
-            extra={
-                "version": blob.version,
-                "env_steps": env_steps,
-                "episodes": len(seeds),
-                "at_budget": at_budget,
-            },
-        )
+        seeds, at_budget = self.schedule.seeds_at(env_steps), self.schedule.at_budget(env_steps)
+        log.info("evaluating", extra={"version": blob.version, "env_steps": env_steps, "episodes": len(seeds),
+                                      "at_budget": at_budget})  # fmt: skip
         try:
-            results = self.rollouts(runtime, seeds)
+            ev = self.runner.evaluate(blob, runtime, env_steps, seeds, at_budget)
         except _StopRequestedError:
             log.info("evaluation abandoned at shutdown", extra={"version": blob.version})
             return None
-        s = summarize(results, self.h_max)
-        wall = time.monotonic() - t0
-        report = EvalReport(evaluator_id=self.ctx.instance, run_id=blob.run_id, task=self.cfg.task,
-                            policy_version=blob.version, env_steps=env_steps, episodes=s.episodes,
-                            success_rate=s.success_rate, mean_return=s.mean_return, mean_length=s.mean_length,
-                            grasp_score=s.grasp_score, created_at=time.time())  # fmt: skip
-        self.ctx.bus.publish(EVAL_REPORTS, report, source=self.ctx.instance)
-        record = {
-            "version": blob.version,
-            "env_steps": env_steps,
-            "success_rate": s.success_rate,
-            "mean_return": s.mean_return,
-            "mean_length": s.mean_length,
-            "grasp_score": s.grasp_score,
-            "episodes": s.episodes,
-            "at_budget": at_budget,
-            "seeds": [r.seed for r in results],
-            "successes": [r.success for r in results],
-            "lengths": [r.length for r in results],
-            "wall_seconds": round(wall, 3),
-            "created_at": created,
-            "task": self.cfg.task,
-            "run_id": blob.run_id,
-            "evaluator_id": self.ctx.instance,
-        }
+        self.ctx.bus.publish(EVAL_REPORTS, ev.report(), source=self.ctx.instance)
+        record = ev.record()
         self.records.append(record)
         if self.history_path is not None:
             try:
                 append_history(self.history_path, record)
             except OSError:
                 log.exception("could not append to the eval history", extra={"path": str(self.history_path)})
-        self._account(blob.version, env_steps, s)
-        log.info("evaluated", extra={"version": blob.version, "env_steps": env_steps, "success_rate": s.success_rate,
-                                     "mean_return": s.mean_return, "grasp_score": s.grasp_score,
-                                     "improvement_env_steps": self.improvement, "seconds": round(wall, 2)})  # fmt: skip
+        self._account(ev)
+        s = ev.summary
+        log.info("evaluated", extra={"version": blob.version, "env_steps": env_steps,
+                                     "success_rate": s.success_rate, "mean_return": s.mean_return,
+                                     "grasp_score": s.grasp_score, "improvement_env_steps": self.improvement,
+                                     "seconds": round(ev.wall_seconds, 2)})  # fmt: skip
         return record
 
-    def _account(self, version: int, env_steps: int, s: EvalSummary) -> None:
+    def _account(self, ev: Evaluation) -> None:
+        version, env_steps, s = ev.version, ev.env_steps, ev.summary
         self.evaluations += 1
         self.last, self.last_version, self.last_steps = s, version, env_steps
         self.last_env_steps = env_steps

@@ -258,7 +258,7 @@ def test_the_evaluation_at_the_budget_runs_final_episodes_held_out_seeds(tmp_pat
     policy and rollout: before the budget M seeds, at the budget the first M_final of the same ones."""
     from types import SimpleNamespace
 
-    import services.evaluator.main as evaluator_main
+    import services.evaluator.evaluation as evaluation
     import services.learner.core.policy as policy_module
 
     rolled: list[int] = []
@@ -292,7 +292,7 @@ def test_the_evaluation_at_the_budget_runs_final_episodes_held_out_seeds(tmp_pat
         def absorb_announcements(self) -> None:
             pass
 
-    monkeypatch.setattr(evaluator_main, "run_episode", fake_run_episode)
+    monkeypatch.setattr(evaluation, "run_episode", fake_run_episode)
     monkeypatch.setattr(policy_module, "PolicyRuntime", FakeRuntime)
     published: list = []
     ev, gate_tracker = _cadence_evaluator(tmp_path, episodes=3, final_episodes=6, every_env_steps=1000,
