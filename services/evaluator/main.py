@@ -161,7 +161,8 @@ class Evaluator:
         if blob is None:
             return None
         env_steps = self.gate.env_steps
-        from services.learner.core.policy import PolicyRuntime  # torch: imported once weights exist
+        # torch: imported once weights exist
+        from services.learner.core.policy import ObservationUnavailableError, PolicyRuntime, check_observation
 
         runtime = PolicyRuntime(deterministic=True, seed=self.cfg.seed_base)
         try:  # a fresh runtime: a failed load cannot leave a half-overwritten network behind
@@ -169,10 +170,10 @@ class Evaluator:
         except Exception as exc:  # noqa: BLE001 - a bad blob must not take the evaluator down
             self._bad(blob, "load", str(exc))
             return None
-        if runtime.spec.observation == "depth" and not self.env.settings.depth_image:
-            self._bad(
-                blob, "observation", "a depth-image policy needs an evaluator started with --depth-image"
-            )
+        try:
+            check_observation(runtime.spec.observation, self.env.settings.depth_image, "an evaluator")
+        except ObservationUnavailableError as exc:
+            self._bad(blob, "observation", str(exc))
             return None
         return blob, runtime, env_steps
 

@@ -325,3 +325,31 @@ def test_the_evaluation_at_the_budget_runs_final_episodes_held_out_seeds(tmp_pat
                                                                                    (2600, 6, True)]  # fmt: skip
     assert [h["seeds"] for h in history] == [regular, regular, final]
     assert history[-1]["successes"] == [True, False] * 3 and len(history[-1]["lengths"]) == 6
+
+
+def test_a_depth_policy_is_refused_by_an_evaluator_without_the_depth_image(tmp_path, caplog):
+    """The observation check shared with the actor: counted under reason "observation", not evaluated."""
+    import logging
+    from types import SimpleNamespace
+
+    from services.learner.core.networks import build_actor
+    from services.learner.core.policy import PolicySpec, actor_tensors
+    from services.tasks import EnvSettings
+    from tests.helpers.learner import TINY_NET
+
+    spec = PolicySpec(TINY_NET, observation="depth")
+    blob = WeightsBlob.create(4, "equi_rsac", "run-1", actor_tensors(build_actor(spec.net)), spec.to_json())
+    ev, _ = _cadence_evaluator(tmp_path)
+    ev.weights = SimpleNamespace(poll=lambda: blob)
+    with caplog.at_level(logging.ERROR, logger="services.evaluator.main"):
+        assert ev.pull() is None
+    registry = ev.ctx.metrics.registry
+    assert ev.bad_weights == 1
+    assert registry.get_sample_value("mea_evaluator_bad_weights_total", {"reason": "observation"}) == 1
+    assert [r.error for r in caplog.records if r.getMessage() == "weights not evaluated"] == [
+        "a depth-image policy needs an evaluator started with --depth-image"
+    ]
+    ev.env.settings = EnvSettings(depth_image=True)  # rendered here: the same weights load
+    blob_, runtime, _steps = ev.pull()
+    assert blob_ is blob and runtime.spec.observation == "depth" and runtime.version == 4
+    assert ev.bad_weights == 1
