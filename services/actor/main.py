@@ -75,12 +75,10 @@ def _load_weights(weights: WeightsClient, policy, mx, counts: dict, depth_image:
     if blob is None:
         return
     try:
-        from services.learner.core.policy import PolicySpec  # torch: only for learned actors
+        from services.learner.core.policy import PolicySpec, check_observation  # torch: learned actors only
 
-        observation = PolicySpec.from_json(blob.config_json).observation
-        if observation == "depth" and not depth_image:
-            raise ValueError("a depth-image policy needs an actor started with --depth-image")
-        policy.load(blob)
+        check_observation(PolicySpec.from_json(blob.config_json).observation, depth_image, "an actor")
+        policy.load(blob)  # only after the check: refused weights must not replace the ones acting
     except ValueError as exc:
         mx["bad_weights"].inc()
         log.error("weights not loaded", extra={"version": blob.version, "error": str(exc)[:300]})

@@ -149,8 +149,7 @@ def run_dir_of(cfg: LearningBenchConfig, variant: str, seed: int) -> Path:
 
 
 def _history(run_dir: Path) -> list[dict]:
-    from services.evaluator.core.metrics import read_history
-    from services.evaluator.plot import HISTORY
+    from services.evaluator.history import HISTORY, read_history
 
     path = run_dir / HISTORY
     return read_history(path) if path.exists() else []

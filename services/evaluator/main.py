@@ -4,39 +4,20 @@ Why a service of its own: evaluation must not touch the training envs (pitfall P
 env is the training env re-seeded, and its resets shift the training episodes' layout), must use
 the deterministic policy (tanh of the mean), and must compare every version on the same episodes.
 
-Each cycle (polled about 5 times a second):
-  1. Track the learner's latest ``ReplayGate``: its ``inserted_steps`` are the training env steps.
-  2. Decide whether an evaluation is due: the first version is evaluated as soon as it exists (after
-     waiting up to ``--first-gate-wait`` s for a gate, so it gets its env steps); after that, once
-     the gate's env steps have advanced by ``--every-env-steps`` since the last evaluation. With no
-     gate (steps unknown) every new version is due; if the gate goes back (a learner restarted in
-     this run dir), the next version is due at once. With ``--final-env-steps B`` (the run's budget)
-     the first version pulled once the steps reach B is evaluated off the cadence too, so a run
-     always ends with an evaluation at its budget. (`mea run` passes its ``--env-steps`` here, and
-     its evaluation sizes as ``--episodes`` and ``--final-episodes``: ``LAUNCH_FIELDS``.)
-  3. Only then pull the newest version with ``WeightsClient`` (pull-if-newer; versions announced in
-     between are never downloaded) and load it into a fresh deterministic ``PolicyRuntime``. A blob
-     that does not load (tensors that do not fit, a bad config) or wants the rendered depth image
-     from an evaluator started without ``--depth-image`` is logged, counted
-     (``mea_evaluator_bad_weights_total{reason}``) and skipped; the next newer version is tried
-     when announced.
-  4. Run ``--episodes`` M episodes in this service's own env, on the same seeds every time:
-     ``seed_base + k`` for k < M (1e9 and up: no actor ever trains on them). A version pulled at or
-     past the budget (``env_steps >= --final-env-steps > 0``) gets ``--final-episodes`` episodes
-     instead when set (the run's final, larger evaluation), on the same seed sequence: the first M
-     of its seeds are every other evaluation's. The policy input is
-     ``services.actor.rollout.policy_input(obs, observation)`` (the voxel ``policy_image`` or the
-     depth image, as the weights' spec says), the rollout ``services.actor.rollout.run_episode``.
-     While episodes run, gates and weights announcements keep being consumed (their subscriptions
-     are bounded and BLOCK: a full one would stall this process's transport and the learner).
-  5. Summarise with ``services.evaluator.core.metrics``, publish an ``EvalReport`` on EVAL_REPORTS
-     (``env_steps`` = the gate's inserted steps when the version was pulled, -1 if no gate was
-     seen), append one line to ``RUN_DIR/eval/history.jsonl`` (with its ``episodes``, ``seeds`` and
-     ``at_budget``) and update metrics and heartbeat.
-
-A shutdown during an evaluation abandons it (nothing is reported for a partial evaluation).
-History lines already in the file (a restarted evaluator) count for the improvement timestep and
-for the cadence.
+This module is the transport shell around ``config`` (the flags; `mea run` passes its own through
+``LAUNCH_FIELDS``), ``core.schedule`` (when a version is due, on which held-out seeds),
+``evaluation`` (the episodes, the report and the history record), ``core.metrics`` and ``history``
+(``RUN_DIR/eval/history.jsonl``). Each cycle (about 5 a second) it tracks the learner's latest
+``ReplayGate`` (its ``inserted_steps`` are the training env steps) and, only once the schedule says
+a version is due, pulls the newest one (pull-if-newer: versions announced in between are never
+downloaded) into a fresh deterministic ``PolicyRuntime``. A blob that does not load, or wants the
+rendered depth image from an evaluator started without ``--depth-image``, is logged, counted and
+skipped. While episodes run, gates and weights announcements keep being consumed (bounded BLOCK
+subscriptions: a full one would stall this process's transport and the learner). Each evaluation
+is published as an ``EvalReport`` (``env_steps``: the gate's steps when the version was pulled, -1
+if no gate was seen) and appended to the history. A shutdown during an evaluation abandons it;
+history lines already in the file (a restarted evaluator) count for the improvement timestep and
+the cadence.
 
 Metrics (``mea_evaluator_*``): evaluations_total, success_rate, mean_return, mean_length,
 grasp_score, policy_version and env_steps of the last evaluation, episode_seconds (histogram),
@@ -48,18 +29,13 @@ improvement_env_steps.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from proto.control import EvalReport
-from proto.seeds import EVAL_SEED_BASE
 from proto.topics import EVAL_REPORTS, REPLAY_GATE
 from proto.weights import WeightsBlob
-from services.actor.episodes import EpisodeBuilder
-from services.actor.rollout import policy_input, run_episode
 from services.common import config
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
@@ -67,95 +43,14 @@ from services.common.metrics import ServiceMetrics
 from services.common.replay_gate import GateTracker
 from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.weights import WeightsClient
-from services.evaluator.core.metrics import (
-    EvalSummary,
-    append_history,
-    episode_result,
-    read_history,
-    run_improvement_timestep,
-    summarize,
-)
-from services.tasks import TASK_CLASSES, EnvSettings, ManipulationEnv, make_env
-from services.tasks.camera import CameraSettings
+from services.evaluator.config import PRESETS, EvaluatorConfig
+from services.evaluator.core.metrics import EvalSummary, run_improvement_timestep
+from services.evaluator.core.schedule import last_evaluated_env_steps
+from services.evaluator.evaluation import EpisodeRunner, Evaluation
+from services.evaluator.history import HISTORY, append_history, read_history
+from services.tasks import ManipulationEnv, make_env
 
 log = logging.getLogger(__name__)
-
-HISTORY = Path("eval") / "history.jsonl"
-"""Where the eval history lives inside a run directory."""
-
-
-@dataclasses.dataclass(frozen=True)
-class EvaluatorConfig:
-    """Evaluate broadcast weights with the deterministic policy on held-out seeds; report and record."""
-
-    task: str = "block_pull"
-    """Task: block_pull, block_pick or drawer_open."""
-    episodes: int = 10
-    """Evaluation episodes M per version (Equi-RSAC: 10; `mea run` passes its --eval-episodes, 20)."""
-    every_env_steps: int = 250
-    """Evaluate the newest version once the learner's env steps advanced by this much since the last
-    evaluation (Equi-RSAC: 250 for Pull and Drawer, 500 for Pick). The first version is evaluated as
-    soon as it exists."""
-    seed_base: int = EVAL_SEED_BASE
-    """First held-out seed: every evaluation runs seeds seed_base .. seed_base + M - 1, so versions are
-    compared on the same episodes (actors' seeds stay below 1e9)."""
-    run_dir: Path | None = None
-    """Run directory: the eval history is appended to RUN_DIR/eval/history.jsonl (none: not recorded)."""
-    final_env_steps: int = 0
-    """The run's env-step budget: once the learner reaches it, the next version is evaluated off the
-    cadence, so the run ends with an evaluation at its budget (0: no budget)."""
-    final_episodes: int = 0
-    """Episodes of an evaluation at or past the budget (final_env_steps), on seeds seed_base ..
-    seed_base + final_episodes - 1 (0: --episodes; `mea run` passes its --final-eval-episodes, 50)."""
-    points_per_segment: int = 256
-    """Points per segment in each observation (as the actors')."""
-    depth_image: bool = False
-    """Render the depth image, which `depth` policies (the equirsac variant) observe."""
-    max_evaluations: int = 0
-    """Stop after this many evaluations (0: until stopped)."""
-    first_gate_wait: float = 2.0
-    """Before the first evaluation, wait this long (s) for a replay gate so the version gets its env steps."""
-    torch_threads: int = 1
-    """torch intra-op threads for the policy (0: torch's default)."""
-    service: ServiceConfig = ServiceConfig()
-    """Identity, transport, metrics and logs."""
-
-    def __post_init__(self) -> None:
-        if self.task not in TASK_CLASSES:
-            raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
-        if self.episodes < 1:
-            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
-        if min(self.every_env_steps, self.final_env_steps, self.final_episodes, self.max_evaluations,
-               self.first_gate_wait) < 0:  # fmt: skip
-            raise ValueError(
-                "every_env_steps, final_env_steps, final_episodes, max_evaluations and first_gate_wait "
-                "must be >= 0"
-            )
-        if self.seed_base < 0 or self.torch_threads < 0 or self.points_per_segment < 1:
-            raise ValueError("seed_base and torch_threads must be >= 0, points_per_segment >= 1")
-
-    def env_settings(self) -> EnvSettings:
-        return EnvSettings(
-            depth_image=self.depth_image, camera=CameraSettings(points_per_segment=self.points_per_segment)
-        )
-
-    @property
-    def seeds(self) -> tuple[int, ...]:
-        """The held-out seeds of an evaluation before the budget."""
-        return self.seeds_at(-1)
-
-    def at_budget(self, env_steps: int) -> bool:
-        """Is a version pulled at ``env_steps`` the run's final evaluation (at or past the budget)?"""
-        return 0 < self.final_env_steps <= env_steps
-
-    def seeds_at(self, env_steps: int) -> tuple[int, ...]:
-        """The held-out seeds of an evaluation of a version pulled at ``env_steps``: ``episodes`` of
-        them, or ``final_episodes`` (when set) at the budget; always a prefix of one seed sequence."""
-        n = self.final_episodes if self.at_budget(env_steps) and self.final_episodes > 0 else self.episodes
-        return tuple(self.seed_base + k for k in range(n))
-
-
-PRESETS = {"default": EvaluatorConfig()}
 
 
 class _StopRequestedError(Exception):
@@ -197,24 +92,19 @@ def _metrics(m: ServiceMetrics) -> dict:
 class Evaluator:
     """The service's loop body, separate from the bus setup so it can be driven directly."""
 
-    def __init__(
-        self,
-        cfg: EvaluatorConfig,
-        ctx: ServiceContext,
-        gate: GateTracker,
-        weights: WeightsClient,
-        env: ManipulationEnv | None = None,
-    ) -> None:
+    def __init__(self, cfg: EvaluatorConfig, ctx: ServiceContext, gate: GateTracker, weights: WeightsClient,
+                 env: ManipulationEnv | None = None) -> None:  # fmt: skip
         self.cfg = cfg
         self.ctx = ctx
         self.gate = gate
         self.weights = weights
         self.env = env or make_env(cfg.task, cfg.env_settings())  # its own env: never a training one
-        self.h_max = self.env.settings.max_steps
         self.mx = _metrics(ctx.metrics)
         self.mx["version"].set(-1)
         self.mx["env_steps"].set(-1)
         self.mx["improvement"].set(-1)
+        self.runner = EpisodeRunner(self.env, cfg.task, ctx.instance, self._keep_up,
+                                    self.mx["episode_seconds"].observe)  # fmt: skip
         self.history_path = cfg.run_dir / HISTORY if cfg.run_dir is not None else None
         self.records: list[dict] = []
         if self.history_path is not None and self.history_path.exists():
@@ -225,8 +115,8 @@ class Evaluator:
         self.improvement = run_improvement_timestep(self.records)
         if self.improvement is not None:
             self.mx["improvement"].set(self.improvement)
-        known = [r["env_steps"] for r in self.records if isinstance(r.get("env_steps"), int)]
-        self.last_env_steps: int | None = known[-1] if known else None  # cadence survives a restart
+        self.schedule = cfg.schedule
+        self.last_env_steps = last_evaluated_env_steps(self.records)  # the cadence survives a restart
         self.evaluations = 0  # by this process
         self.bad_weights = 0
         self.last: EvalSummary | None = None
@@ -234,7 +124,6 @@ class Evaluator:
         self.last_steps = -1
         self.started = time.monotonic()
 
-    # ---------------------------------------------------------------------------------------
     def heartbeat_counters(self) -> dict[str, float]:
         """For the launcher table (the first four are shown); -1 means none yet / unknown."""
         out = {
@@ -255,17 +144,8 @@ class Evaluator:
         return self.cfg.max_evaluations > 0 and self.evaluations >= self.cfg.max_evaluations
 
     def due(self) -> bool:
-        """Is it time to pull (and evaluate) the newest version? See the module docstring."""
-        steps = self.gate.env_steps
-        if self.last_env_steps is None:  # nothing evaluated yet: as soon as a version exists
-            return steps >= 0 or time.monotonic() - self.started >= self.cfg.first_gate_wait
-        if steps < 0 or self.last_env_steps < 0:  # steps unknown: every new version
-            return True
-        if steps < self.last_env_steps:  # the learner went back (restarted): start the cadence afresh
-            return True
-        if 0 < self.cfg.final_env_steps <= steps and self.last_env_steps < self.cfg.final_env_steps:
-            return True  # the budget is reached: the run's last evaluation
-        return steps - self.last_env_steps >= self.cfg.every_env_steps
+        """Is it time to pull (and evaluate) the newest version? (``core.schedule.Schedule.due``)"""
+        return self.schedule.due(self.gate.env_steps, self.last_env_steps, time.monotonic() - self.started)
 
     def _bad(self, blob: WeightsBlob, reason: str, error: str) -> None:
         self.bad_weights += 1
@@ -281,7 +161,8 @@ class Evaluator:
         if blob is None:
             return None
         env_steps = self.gate.env_steps
-        from services.learner.core.policy import PolicyRuntime  # torch: imported once weights exist
+        # torch: imported once weights exist
+        from services.learner.core.policy import ObservationUnavailableError, PolicyRuntime, check_observation
 
         runtime = PolicyRuntime(deterministic=True, seed=self.cfg.seed_base)
         try:  # a fresh runtime: a failed load cannot leave a half-overwritten network behind
@@ -289,10 +170,10 @@ class Evaluator:
         except Exception as exc:  # noqa: BLE001 - a bad blob must not take the evaluator down
             self._bad(blob, "load", str(exc))
             return None
-        if runtime.spec.observation == "depth" and not self.env.settings.depth_image:
-            self._bad(
-                blob, "observation", "a depth-image policy needs an evaluator started with --depth-image"
-            )
+        try:
+            check_observation(runtime.spec.observation, self.env.settings.depth_image, "an evaluator")
+        except ObservationUnavailableError as exc:
+            self._bad(blob, "observation", str(exc))
             return None
         return blob, runtime, env_steps
 
@@ -303,78 +184,34 @@ class Evaluator:
         if self.ctx.shutdown.is_set():
             raise _StopRequestedError
 
-    def rollouts(self, runtime, seeds: Sequence[int] | None = None) -> list:
-        """Deterministic episodes on the fixed held-out seeds (default: the regular ``--episodes``)."""
-        results = []
-        observation = runtime.spec.observation
-        for seed in self.cfg.seeds if seeds is None else seeds:
-            t0 = time.perf_counter()
-            runtime.reset()
-            builder = EpisodeBuilder(task=self.cfg.task, seed=seed, actor_id=self.ctx.instance,
-                                     policy_version=runtime.version, policy_kind="eval", is_demo=False,
-                                     segments=self.env.segment_names)  # fmt: skip
-            b = run_episode(self.env, seed, lambda o: runtime.act(policy_input(o, observation)), builder,
-                            self._keep_up)  # fmt: skip
-            self.mx["episode_seconds"].observe(time.perf_counter() - t0)
-            results.append(episode_result(b.rewards, b.terminated, seed))
-        return results
-
     def evaluate(self, blob: WeightsBlob, runtime, env_steps: int) -> dict | None:
         """Evaluate one version, report it and record it; returns the history record (None if aborted)."""
-        t0, created = time.monotonic(), time.time()
-        seeds, at_budget = self.cfg.seeds_at(env_steps), self.cfg.at_budget(env_steps)
-        log.info(
-            "evaluating",
-            extra={
-                "version": blob.version,
-                "env_steps": env_steps,
-                "episodes": len(seeds),
-                "at_budget": at_budget,
-            },
-        )
+        seeds, at_budget = self.schedule.seeds_at(env_steps), self.schedule.at_budget(env_steps)
+        log.info("evaluating", extra={"version": blob.version, "env_steps": env_steps, "episodes": len(seeds),
+                                      "at_budget": at_budget})  # fmt: skip
         try:
-            results = self.rollouts(runtime, seeds)
+            ev = self.runner.evaluate(blob, runtime, env_steps, seeds, at_budget)
         except _StopRequestedError:
             log.info("evaluation abandoned at shutdown", extra={"version": blob.version})
             return None
-        s = summarize(results, self.h_max)
-        wall = time.monotonic() - t0
-        report = EvalReport(evaluator_id=self.ctx.instance, run_id=blob.run_id, task=self.cfg.task,
-                            policy_version=blob.version, env_steps=env_steps, episodes=s.episodes,
-                            success_rate=s.success_rate, mean_return=s.mean_return, mean_length=s.mean_length,
-                            grasp_score=s.grasp_score, created_at=time.time())  # fmt: skip
-        self.ctx.bus.publish(EVAL_REPORTS, report, source=self.ctx.instance)
-        record = {
-            "version": blob.version,
-            "env_steps": env_steps,
-            "success_rate": s.success_rate,
-            "mean_return": s.mean_return,
-            "mean_length": s.mean_length,
-            "grasp_score": s.grasp_score,
-            "episodes": s.episodes,
-            "at_budget": at_budget,
-            "seeds": [r.seed for r in results],
-            "successes": [r.success for r in results],
-            "lengths": [r.length for r in results],
-            "wall_seconds": round(wall, 3),
-            "created_at": created,
-            "task": self.cfg.task,
-            "run_id": blob.run_id,
-            "evaluator_id": self.ctx.instance,
-        }
+        self.ctx.bus.publish(EVAL_REPORTS, ev.report(), source=self.ctx.instance)
+        record = ev.record()
         self.records.append(record)
         if self.history_path is not None:
             try:
                 append_history(self.history_path, record)
             except OSError:
                 log.exception("could not append to the eval history", extra={"path": str(self.history_path)})
-        self._account(blob.version, env_steps, s)
-        log.info("evaluated", extra={"version": blob.version, "env_steps": env_steps, "success_rate": s.success_rate,
-                                     "mean_return": s.mean_return, "grasp_score": s.grasp_score,
-                                     "improvement_env_steps": self.improvement, "seconds": round(wall, 2)})  # fmt: skip
+        self._account(ev)
+        s = ev.summary
+        log.info("evaluated", extra={"version": blob.version, "env_steps": env_steps,
+                                     "success_rate": s.success_rate, "mean_return": s.mean_return,
+                                     "grasp_score": s.grasp_score, "improvement_env_steps": self.improvement,
+                                     "seconds": round(ev.wall_seconds, 2)})  # fmt: skip
         return record
 
-    def _account(self, version: int, env_steps: int, s: EvalSummary) -> None:
+    def _account(self, ev: Evaluation) -> None:
+        version, env_steps, s = ev.version, ev.env_steps, ev.summary
         self.evaluations += 1
         self.last, self.last_version, self.last_steps = s, version, env_steps
         self.last_env_steps = env_steps
@@ -482,12 +319,4 @@ def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
     return args
 
 
-__all__ = [
-    "HISTORY",
-    "PRESETS",
-    "Evaluator",
-    "EvaluatorConfig",
-    "launch_args",
-    "main",
-    "run",
-]
+__all__ = ["Evaluator", "launch_args", "main", "run"]

@@ -36,11 +36,9 @@ from services.evaluator.core.metrics import (
     curve,
     improvement_timestep,
     mean_std,
-    read_history,
     success_auc,
 )
-
-HISTORY = Path("eval") / "history.jsonl"
+from services.evaluator.history import HISTORY, read_history
 
 
 class PlotError(Exception):

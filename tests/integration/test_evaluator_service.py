@@ -16,8 +16,9 @@ from proto.weights import WeightsBlob
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsServer
-from services.evaluator.core.metrics import read_history
-from services.evaluator.main import EvaluatorConfig, launch_args, run
+from services.evaluator.config import EvaluatorConfig
+from services.evaluator.history import read_history
+from services.evaluator.main import launch_args, run
 
 pytestmark = pytest.mark.integration
 INSTANCE = "evaluator-t"
@@ -157,7 +158,7 @@ def test_launch_args_pass_the_task_the_run_dir_and_the_runs_eval_settings(tmp_pa
                     "--episodes", "4", "--final-env-steps", "2000", "--final-episodes", "7",
                     "--depth-image"]  # fmt: skip
     from services.common import config
-    from services.evaluator.main import PRESETS
+    from services.evaluator.config import PRESETS
 
     cfg = config.parse(EvaluatorConfig, PRESETS, args, "mea evaluator", "")
     assert (cfg.task, cfg.run_dir, cfg.every_env_steps, cfg.episodes) == ("block_pick", tmp_path, 500, 4)
@@ -236,7 +237,7 @@ def test_cadence_first_version_then_every_env_steps_then_the_budget(tmp_path):
 
 
 def test_a_restarted_evaluator_keeps_the_cadence_and_improvement_from_its_history(tmp_path):
-    from services.evaluator.core.metrics import append_history
+    from services.evaluator.history import append_history
 
     for steps, success in ((0, 0.0), (250, 0.2), (500, 0.1)):
         append_history(
@@ -257,7 +258,7 @@ def test_the_evaluation_at_the_budget_runs_final_episodes_held_out_seeds(tmp_pat
     policy and rollout: before the budget M seeds, at the budget the first M_final of the same ones."""
     from types import SimpleNamespace
 
-    import services.evaluator.main as evaluator_main
+    import services.evaluator.evaluation as evaluation
     import services.learner.core.policy as policy_module
 
     rolled: list[int] = []
@@ -291,7 +292,7 @@ def test_the_evaluation_at_the_budget_runs_final_episodes_held_out_seeds(tmp_pat
         def absorb_announcements(self) -> None:
             pass
 
-    monkeypatch.setattr(evaluator_main, "run_episode", fake_run_episode)
+    monkeypatch.setattr(evaluation, "run_episode", fake_run_episode)
     monkeypatch.setattr(policy_module, "PolicyRuntime", FakeRuntime)
     published: list = []
     ev, gate_tracker = _cadence_evaluator(tmp_path, episodes=3, final_episodes=6, every_env_steps=1000,
@@ -324,3 +325,31 @@ def test_the_evaluation_at_the_budget_runs_final_episodes_held_out_seeds(tmp_pat
                                                                                    (2600, 6, True)]  # fmt: skip
     assert [h["seeds"] for h in history] == [regular, regular, final]
     assert history[-1]["successes"] == [True, False] * 3 and len(history[-1]["lengths"]) == 6
+
+
+def test_a_depth_policy_is_refused_by_an_evaluator_without_the_depth_image(tmp_path, caplog):
+    """The observation check shared with the actor: counted under reason "observation", not evaluated."""
+    import logging
+    from types import SimpleNamespace
+
+    from services.learner.core.networks import build_actor
+    from services.learner.core.policy import PolicySpec, actor_tensors
+    from services.tasks import EnvSettings
+    from tests.helpers.learner import TINY_NET
+
+    spec = PolicySpec(TINY_NET, observation="depth")
+    blob = WeightsBlob.create(4, "equi_rsac", "run-1", actor_tensors(build_actor(spec.net)), spec.to_json())
+    ev, _ = _cadence_evaluator(tmp_path)
+    ev.weights = SimpleNamespace(poll=lambda: blob)
+    with caplog.at_level(logging.ERROR, logger="services.evaluator.main"):
+        assert ev.pull() is None
+    registry = ev.ctx.metrics.registry
+    assert ev.bad_weights == 1
+    assert registry.get_sample_value("mea_evaluator_bad_weights_total", {"reason": "observation"}) == 1
+    assert [r.error for r in caplog.records if r.getMessage() == "weights not evaluated"] == [
+        "a depth-image policy needs an evaluator started with --depth-image"
+    ]
+    ev.env.settings = EnvSettings(depth_image=True)  # rendered here: the same weights load
+    blob_, runtime, _steps = ev.pull()
+    assert blob_ is blob and runtime.spec.observation == "depth" and runtime.version == 4
+    assert ev.bad_weights == 1

@@ -12,7 +12,7 @@ import pytest
 from services.bench import learning
 from services.bench.learning import LearningBenchConfig, run, run_args, settings
 from services.common import config
-from services.evaluator.core.metrics import append_history
+from services.evaluator.history import append_history
 from services.launcher import PRESETS as RUN_PRESETS
 from services.launcher import RunConfig
 

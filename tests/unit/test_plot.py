@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from services.evaluator.core.metrics import append_history
+from services.evaluator.history import append_history
 from services.evaluator.plot import group_runs, load_run, main, summary_row
 
 pytestmark = pytest.mark.unit

@@ -10,7 +10,14 @@ import torch
 
 from proto.weights import WeightsBlob
 from services.learner.core.networks import build_actor
-from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors, images_from_codes
+from services.learner.core.policy import (
+    ObservationUnavailableError,
+    PolicyRuntime,
+    PolicySpec,
+    actor_tensors,
+    check_observation,
+    images_from_codes,
+)
 from services.learner.core.sac import deterministic_action
 from tests.helpers.learner import SIZE, TINY_NET
 
@@ -108,3 +115,14 @@ def test_a_blob_that_does_not_fit_leaves_the_running_policy_untouched():
     assert rt.version == 1
     for k, v in rt.actor.state_dict().items():
         assert torch.equal(v, before[k]), k
+
+
+def test_a_depth_policy_is_refused_where_no_depth_image_is_rendered():
+    check_observation("voxel", depth_image=False, consumer="an actor")  # voxel: always buildable
+    check_observation("voxel", depth_image=True, consumer="an actor")
+    check_observation("depth", depth_image=True, consumer="an evaluator")
+    for consumer in ("an actor", "an evaluator"):
+        with pytest.raises(ObservationUnavailableError) as exc:
+            check_observation("depth", depth_image=False, consumer=consumer)
+        assert str(exc.value) == f"a depth-image policy needs {consumer} started with --depth-image"
+    assert issubclass(ObservationUnavailableError, ValueError)  # refused like weights that do not fit

@@ -1,7 +1,8 @@
-"""Evaluation metrics, the eval history file, and learning curves across seeds (numpy and stdlib only).
+"""Evaluation metrics and learning curves across seeds (numpy and stdlib only).
 
-Kept free of transport, metrics and the simulator so that both the evaluator service and ``mea plot``
-(and their tests) use exactly the same definitions.
+Kept free of transport, metrics, storage and the simulator so that both the evaluator service and
+``mea plot`` (and their tests) use exactly the same definitions. The history file these curves are
+read from is ``services.evaluator.history``.
 
 Per episode
     ``success`` (the episode terminated, i.e. the sparse reward fired), ``length`` H (env steps taken)
@@ -30,12 +31,6 @@ Area under the success curve (AUC)
     run learns in one number, where success at the budget and the improvement timestep each see
     one side.
 
-Eval history (``RUN_DIR/eval/history.jsonl``)
-    One JSON object per evaluation, appended (and fsynced) as each evaluation finishes. A line that
-    does not parse (typically a last line truncated by a crash) is skipped with a logged warning,
-    never an error; :func:`append_history` first terminates such a partial line so the next record
-    starts on its own line.
-
 Curves across runs (seeds)
     :func:`curve` turns a history into (env_steps, value) sorted by env_steps, dropping records with
     unknown steps (< 0) and keeping only the last record of repeated env_steps. :func:`align` puts
@@ -48,16 +43,10 @@ Curves across runs (seeds)
 
 from __future__ import annotations
 
-import json
-import logging
-import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
-
-log = logging.getLogger(__name__)
 
 H_MAX = 50
 """The tasks' time limit in steps (the paper's H_max)."""
@@ -184,55 +173,6 @@ def run_improvement_timestep(records: Iterable[Mapping], key: str = "success_rat
 
 
 # --------------------------------------------------------------------------------------------
-# eval history (JSON lines)
-# --------------------------------------------------------------------------------------------
-
-
-def read_history(path: str | os.PathLike) -> list[dict]:
-    """All records of a history file, in file order; unparsable lines are skipped with a warning.
-
-    Raises FileNotFoundError if the file does not exist."""
-    records: list[dict] = []
-    with open(path, encoding="utf-8", errors="replace") as f:
-        lines = f.read().split("\n")
-    last = max((i for i, line in enumerate(lines) if line.strip()), default=-1)
-    for i, line in enumerate(lines):
-        if not line.strip():
-            continue
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError as exc:
-            where = "last line (truncated?)" if i == last else f"line {i + 1}"
-            log.warning("skipping unreadable eval history line",
-                        extra={"path": str(path), "line": i + 1, "where": where, "error": str(exc)})  # fmt: skip
-            continue
-        if not isinstance(rec, dict):
-            log.warning("skipping eval history line that is not an object",
-                        extra={"path": str(path), "line": i + 1})  # fmt: skip
-            continue
-        records.append(rec)
-    return records
-
-
-def append_history(path: str | os.PathLike, record: Mapping) -> None:
-    """Append one record as a JSON line (creating the file and its folder), flushed to disk.
-
-    If the file ends in a partial line (a crash mid-write), a newline is written first so the
-    partial line stays isolated (and skipped by :func:`read_history`)."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    line = json.dumps(dict(record), sort_keys=True, allow_nan=False) + "\n"
-    with open(p, "ab+") as f:
-        if f.tell() > 0:
-            f.seek(-1, os.SEEK_END)
-            if f.read(1) != b"\n":
-                line = "\n" + line
-        f.write(line.encode())
-        f.flush()
-        os.fsync(f.fileno())
-
-
-# --------------------------------------------------------------------------------------------
 # curves across runs
 # --------------------------------------------------------------------------------------------
 
@@ -314,14 +254,12 @@ __all__ = [
     "EpisodeResult",
     "EvalSummary",
     "align",
-    "append_history",
     "common_grid",
     "curve",
     "episode_result",
     "grasp_score",
     "improvement_timestep",
     "mean_std",
-    "read_history",
     "run_improvement_timestep",
     "run_success_auc",
     "success_auc",

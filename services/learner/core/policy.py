@@ -52,6 +52,18 @@ class PolicySpec:
         return spec
 
 
+class ObservationUnavailableError(ValueError):
+    """The weights' policy observes an image this consumer does not render."""
+
+
+def check_observation(observation: str, depth_image: bool, consumer: str) -> None:
+    """Refuse a policy whose observation this consumer cannot build: a ``depth`` policy needs the
+    rendered depth image (a service started with ``--depth-image``). One check for the actor and the
+    evaluator; ``consumer`` names the service in the message ("an actor", "an evaluator")."""
+    if observation == "depth" and not depth_image:
+        raise ObservationUnavailableError(f"a depth-image policy needs {consumer} started with --depth-image")
+
+
 def actor_tensors(actor: Actor) -> dict[str, np.ndarray]:
     """The actor's parameters and buffers as numpy arrays (what a WeightsBlob carries)."""
     return {k: v.detach().cpu().numpy().copy() for k, v in actor.state_dict().items()}

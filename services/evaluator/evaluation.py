@@ -1,0 +1,117 @@
+"""One evaluation of one weights version: deterministic episodes on held-out seeds in the evaluator's
+own env, summarised into what the evaluator reports (``EvalReport``) and records (a history line).
+
+Apart from transport, metrics and storage (the shell publishes, counts and appends), but not a pure
+core: it steps the simulator through the actor's rollout. The policy input is
+``services.actor.rollout.policy_input(obs, observation)`` (the voxel ``policy_image`` or the depth
+image, as the weights' spec says), the rollout ``services.actor.rollout.run_episode``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from proto.control import EvalReport
+from proto.weights import WeightsBlob
+from services.actor.episodes import EpisodeBuilder
+from services.actor.rollout import policy_input, run_episode
+from services.evaluator.core.metrics import EpisodeResult, EvalSummary, episode_result, summarize
+from services.tasks import ManipulationEnv
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """A finished evaluation of one version, pulled when the learner was at ``env_steps``."""
+
+    version: int
+    run_id: str
+    task: str
+    evaluator_id: str
+    env_steps: int
+    """The learner's env steps when the version was pulled (-1: no gate seen)."""
+    at_budget: bool
+    results: tuple[EpisodeResult, ...]
+    summary: EvalSummary
+    wall_seconds: float
+    created_at: float
+    """Wall clock when the evaluation started."""
+
+    def report(self) -> EvalReport:
+        """The message published on EVAL_REPORTS (stamped now)."""
+        s = self.summary
+        return EvalReport(evaluator_id=self.evaluator_id, run_id=self.run_id, task=self.task,
+                          policy_version=self.version, env_steps=self.env_steps, episodes=s.episodes,
+                          success_rate=s.success_rate, mean_return=s.mean_return, mean_length=s.mean_length,
+                          grasp_score=s.grasp_score, created_at=time.time())  # fmt: skip
+
+    def record(self) -> dict:
+        """The line appended to the eval history (with the per-episode seeds, successes, lengths)."""
+        s = self.summary
+        return {
+            "version": self.version,
+            "env_steps": self.env_steps,
+            "success_rate": s.success_rate,
+            "mean_return": s.mean_return,
+            "mean_length": s.mean_length,
+            "grasp_score": s.grasp_score,
+            "episodes": s.episodes,
+            "at_budget": self.at_budget,
+            "seeds": [r.seed for r in self.results],
+            "successes": [r.success for r in self.results],
+            "lengths": [r.length for r in self.results],
+            "wall_seconds": round(self.wall_seconds, 3),
+            "created_at": self.created_at,
+            "task": self.task,
+            "run_id": self.run_id,
+            "evaluator_id": self.evaluator_id,
+        }
+
+
+class EpisodeRunner:
+    """Deterministic episodes of a loaded ``PolicyRuntime`` in one env (never a training env).
+
+    ``keep_up(seconds)`` runs between env steps (the shell consumes its subscriptions there and may
+    raise to abandon the evaluation); ``on_episode(seconds)`` sees each episode's wall time."""
+
+    def __init__(self, env: ManipulationEnv, task: str, evaluator_id: str,
+                 keep_up: Callable[[float], None] | None = None,
+                 on_episode: Callable[[float], None] | None = None) -> None:  # fmt: skip
+        self.env = env
+        self.task = task
+        self.evaluator_id = evaluator_id
+        self.keep_up = keep_up
+        self.on_episode = on_episode
+
+    def episodes(self, runtime, seeds: Sequence[int]) -> list[EpisodeResult]:
+        """One episode per seed, the recurrent state reset before each."""
+        results = []
+        observation = runtime.spec.observation
+        for seed in seeds:
+            t0 = time.perf_counter()
+            runtime.reset()
+            builder = EpisodeBuilder(task=self.task, seed=seed, actor_id=self.evaluator_id,
+                                     policy_version=runtime.version, policy_kind="eval", is_demo=False,
+                                     segments=self.env.segment_names)  # fmt: skip
+            b = run_episode(self.env, seed, lambda o: runtime.act(policy_input(o, observation)), builder,
+                            self.keep_up)  # fmt: skip
+            if self.on_episode is not None:
+                self.on_episode(time.perf_counter() - t0)
+            results.append(episode_result(b.rewards, b.terminated, seed))
+        return results
+
+    def evaluate(self, blob: WeightsBlob, runtime, env_steps: int, seeds: Sequence[int],
+                 at_budget: bool) -> Evaluation:  # fmt: skip
+        """``blob``'s episodes on ``seeds`` in ``runtime`` (loaded from it), summarised (grasp score
+        against the env's time limit)."""
+        t0, created = time.monotonic(), time.time()
+        results = self.episodes(runtime, seeds)
+        summary = summarize(results, self.env.settings.max_steps)
+        return Evaluation(version=blob.version, run_id=blob.run_id, task=self.task,
+                          evaluator_id=self.evaluator_id, env_steps=env_steps, at_budget=at_budget,
+                          results=tuple(results), summary=summary, wall_seconds=time.monotonic() - t0,
+                          created_at=created)  # fmt: skip
+
+
+__all__ = ["EpisodeRunner", "Evaluation"]
