@@ -9,8 +9,8 @@ import numpy as np
 
 from proto.episode import Augmentation, Episode
 from services.common.config import ServiceConfig
+from services.learner.config import LearnerConfig
 from services.learner.core.networks import NetConfig
-from services.learner.main import LearnerConfig
 from tests.helpers import build_episode
 
 SIZE = 12
