@@ -5,9 +5,9 @@ Why this layout (tasks-and-baselines.md §8 P4): the public code keeps float32 `
 
 * an episode of ``T`` transitions stores its ``T+1`` observations once (the next observation of
   step ``t`` is row ``t+1``), as uint8 codes;
-* a channel that is constant over the image (the tiled jaw code, channel 1 of
-  ``services.observation.projection.quantized_observations``) is stored as one byte per
-  observation and re-tiled by the consumer (``SequenceBatch.images_uint8``);
+* a channel that is constant over the image (the tiled jaw code, channel 1 of the policy image
+  format, ``services.observation.image_format``) is stored as one byte per observation and
+  re-tiled by the consumer (``SequenceBatch.images_uint8``);
 * actions float32 (T, 5), rewards float32, ``terminated``/``truncated`` bool;
 * optionally ``state_dim`` float32 per observation: the privileged state a state critic reads
   (``services.learner.core.privileged``), given beside the episode at insert.
@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from proto.actions import ACTION_DIM
+from services.observation import image_format
 
 if TYPE_CHECKING:
     from proto.episode import Episode
@@ -125,11 +126,9 @@ class SequenceBatch:
 
     def images_uint8(self) -> np.ndarray:
         """The full uint8 stack (B, L+1, C, H, W), constant channels tiled over the image."""
-        B, L1, _, H, W = self.image_codes.shape
-        out = np.empty((B, L1, len(self.code_channels) + len(self.constant_channels), H, W), np.uint8)
-        out[:, :, list(self.code_channels)] = self.image_codes
-        out[:, :, list(self.constant_channels)] = self.constant[..., None, None]
-        return out
+        return image_format.tile_constant(
+            self.image_codes, self.constant, self.code_channels, self.constant_channels
+        )
 
 
 def _layout(
@@ -147,8 +146,8 @@ def _layout(
     index = np.dtype(np.int32) if rows < 2**31 else np.dtype(np.int64)
     n_const = len(constant_channels)
     return {
-        "codes": ((rows, channels - n_const, H, H), np.dtype(np.uint8)),
-        "constant": ((rows, n_const), np.dtype(np.uint8)),
+        "codes": ((rows, channels - n_const, H, H), image_format.DTYPE),
+        "constant": ((rows, n_const), image_format.DTYPE),
         "actions": ((rows, ACTION_DIM), np.dtype(np.float32)),
         "rewards": ((rows,), np.dtype(np.float32)),
         "terminated": ((rows,), np.dtype(np.bool_)),
@@ -189,8 +188,8 @@ class SequenceReplay:
         capacity_transitions: int,
         image_size: int = 84,
         seq_len: int = 50,
-        constant_channels: Iterable[int] = (1,),
-        channels: int = 2,
+        constant_channels: Iterable[int] = image_format.CONSTANT_CHANNELS,
+        channels: int = image_format.N_CHANNELS,
         max_episodes: int | None = None,
         seed: int | None = None,
         state_dim: int = 0,
@@ -202,7 +201,7 @@ class SequenceReplay:
             raise ValueError(f"state_dim must be a non-negative integer, got {state_dim!r}")
         self.state_dim = int(state_dim)
         self.constant_channels = const
-        self.code_channels = tuple(c for c in range(channels) if c not in const)
+        self.code_channels = image_format.code_channels(channels, const)
         self._rng = np.random.default_rng(seed)
         self._arrays = {
             name: np.zeros(shape, dtype)
@@ -229,8 +228,8 @@ class SequenceReplay:
         capacity_transitions: int,
         image_size: int = 84,
         seq_len: int = 50,
-        constant_channels: Iterable[int] = (1,),
-        channels: int = 2,
+        constant_channels: Iterable[int] = image_format.CONSTANT_CHANNELS,
+        channels: int = image_format.N_CHANNELS,
         max_episodes: int | None = None,
         state_dim: int = 0,
     ) -> int:
@@ -341,22 +340,18 @@ class SequenceReplay:
         images = ep.images
         if images is None:
             raise ValueError("images: None; the replay stores policy images, attach them before inserting")
-        if not isinstance(images, np.ndarray) or images.dtype != np.uint8:
+        if not isinstance(images, np.ndarray) or images.dtype != image_format.DTYPE:
             raise ValueError(
                 f"images: dtype must be uint8, got {getattr(images, 'dtype', type(images).__name__)}"
             )
         expected = (T + 1, self.channels, self.image_size, self.image_size)
         if images.shape != expected:
             raise ValueError(f"images: expected shape {expected} (T+1, C, H, W), got {images.shape}")
-        const = images[:, list(self.constant_channels), 0, 0]
-        varies = images[:, list(self.constant_channels)] != const[..., None, None]
-        if varies.any():
-            t, c = np.argwhere(varies.any(axis=(2, 3)))[0]
-            raise ValueError(
-                f"images: channel {self.constant_channels[c]} must be constant over each image "
-                f"(the tiled jaw code) but varies in frame {t}"
-            )
-        return T, images[:, list(self.code_channels)], const
+        try:
+            codes, const = image_format.split_constant(images, self.code_channels, self.constant_channels)
+        except ValueError as exc:
+            raise ValueError(f"images: {exc}") from None
+        return T, codes, const
 
     def _checked_state(self, T: int, state: np.ndarray | None) -> np.ndarray:
         if self.state_dim == 0:
@@ -709,8 +704,8 @@ def _checked_state_arrays(
 ) -> dict[str, np.ndarray]:
     n, n_obs, n_trans = lengths.size, int((lengths + 1).sum()), int(lengths.sum())
     expected = {
-        "image_codes": ((n_obs, *code_shape), np.uint8),
-        "constant": ((n_obs, *const_shape), np.uint8),
+        "image_codes": ((n_obs, *code_shape), image_format.DTYPE),
+        "constant": ((n_obs, *const_shape), image_format.DTYPE),
         "actions": ((n_trans, ACTION_DIM), np.float32),
         "rewards": ((n_trans,), np.float32),
         "terminated": ((n_trans,), np.bool_),
