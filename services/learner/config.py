@@ -1,7 +1,8 @@
-"""The learner's settings: `LearnerConfig`, its presets and the run id a fresh run gets.
+"""The learner's settings: `LearnerConfig`, its presets, the run id a fresh run gets, and the
+trainer a config describes (``build_trainer``).
 
-Plain data and validation only (no transport), so that the benchmarks, the tests and the shell
-(``services.learner.main``) share one definition.
+No transport, so that the benchmarks, the tests and the shell (``services.learner.main``) share one
+definition.
 """
 
 from __future__ import annotations
@@ -9,14 +10,22 @@ from __future__ import annotations
 import dataclasses
 import re
 import time
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+import torch
+
 from services.common.config import ServiceConfig
 from services.learner.core.networks import PRESETS as NET_PRESETS
-from services.learner.core.networks import NetConfig
+from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import OBSERVATIONS
-from services.learner.core.sac import SacSettings
+from services.learner.core.privileged import STATE_DIM
+from services.learner.core.rate_limiter import SampleToInsertRatio
+from services.learner.core.replay import SequenceReplay
+from services.learner.core.sac import RecurrentSAC, SacSettings
+from services.learner.core.trainer import Trainer, TrainerSettings
 
 ALGORITHMS = ("equi_rsac", "rsac")
 
@@ -101,6 +110,17 @@ class LearnerConfig:
         if self.samples_per_insert <= 0 or self.min_steps < 0 or self.error_buffer < 0:
             raise ValueError("samples_per_insert must be > 0, min_steps and error_buffer >= 0")
 
+    def trainer_settings(self) -> TrainerSettings:
+        return TrainerSettings(
+            batch_size=self.batch_size,
+            trim_batches=self.trim_batches,
+            publish_every=self.publish_every,
+            demo_fraction=self.demo_fraction,
+            successes_as_demos=self.successes_as_demos,
+            max_env_steps=self.max_env_steps,
+            max_updates=self.max_updates,
+        )
+
 
 PRESETS = {
     "paper": LearnerConfig(),
@@ -157,4 +177,22 @@ def default_run_id(run_dir: Path) -> str:
     return f"{stem}-{int(time.time())}"
 
 
-__all__ = ["ALGORITHMS", "PRESETS", "LearnerConfig", "default_run_id"]
+def build_trainer(cfg: LearnerConfig, guard: AbstractContextManager[object]) -> Trainer:
+    """The trainer ``cfg`` describes: networks from torch's generator seeded with ``cfg.seed``, batches
+    and the replay's own generator from ``cfg.seed``."""
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    sac = RecurrentSAC(build_actor(cfg.net), build_critic(cfg.net), cfg.sac)
+    replay = SequenceReplay(
+        cfg.replay_capacity,
+        image_size=cfg.net.image_size,
+        seq_len=cfg.seq_len,
+        channels=cfg.net.in_channels,
+        seed=cfg.seed,
+        state_dim=STATE_DIM if cfg.net.critic_input == "state" else 0,
+    )
+    limiter = SampleToInsertRatio(cfg.samples_per_insert, cfg.min_steps, cfg.error_buffer)
+    return Trainer(sac, replay, limiter, rng, cfg.trainer_settings(), guard)
+
+
+__all__ = ["ALGORITHMS", "PRESETS", "LearnerConfig", "build_trainer", "default_run_id"]
