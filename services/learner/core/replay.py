@@ -13,7 +13,6 @@ generator state. Not thread-safe: the caller serialises inserts and samples.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -41,36 +40,8 @@ def public_reference_bytes(capacity_transitions: int, image_size: int = 84, chan
 
 
 class SequenceReplay(ReplayStorage):
-    """Whole-episode replay with a fixed memory budget (``ReplayStorage``) that samples batches and
-    saves and restores its contents.
-
-    Args:
-        capacity_transitions, image_size, seq_len, constant_channels, channels, max_episodes,
-        state_dim: as for ``ReplayStorage``.
-        seed: seed of the generator ``sample`` uses when given no ``rng``.
-    """
-
-    def __init__(
-        self,
-        capacity_transitions: int,
-        image_size: int = 84,
-        seq_len: int = 50,
-        constant_channels: Iterable[int] = image_format.CONSTANT_CHANNELS,
-        channels: int = image_format.N_CHANNELS,
-        max_episodes: int | None = None,
-        seed: int | None = None,
-        state_dim: int = 0,
-    ) -> None:
-        super().__init__(
-            capacity_transitions,
-            image_size=image_size,
-            seq_len=seq_len,
-            constant_channels=constant_channels,
-            channels=channels,
-            max_episodes=max_episodes,
-            state_dim=state_dim,
-        )
-        self._rng = np.random.default_rng(seed)
+    """Whole-episode replay with a fixed memory budget (``ReplayStorage``, same arguments) that samples
+    batches and saves and restores its contents."""
 
     # ---------------------------------------------------------------- sample
 

@@ -106,6 +106,8 @@ class ReplayStorage:
         constant_channels: channels constant over each image (the tiled jaw code), stored as one byte.
         channels: channels of the policy image.
         max_episodes: stored episodes at most (default ``ceil(capacity / 4)``).
+        seed: seed of the generator ``SequenceReplay.sample`` uses when given no ``rng`` (its state
+            is saved with the contents).
         state_dim: privileged state floats per observation that ``insert`` requires (0: none).
     """
 
@@ -117,6 +119,7 @@ class ReplayStorage:
         constant_channels: Iterable[int] = image_format.CONSTANT_CHANNELS,
         channels: int = image_format.N_CHANNELS,
         max_episodes: int | None = None,
+        seed: int | None = None,
         state_dim: int = 0,
     ) -> None:
         const = tuple(int(c) for c in constant_channels)
@@ -127,6 +130,7 @@ class ReplayStorage:
         self.state_dim = int(state_dim)
         self.constant_channels = const
         self.code_channels = image_format.code_channels(channels, const)
+        self._rng = np.random.default_rng(seed)
         self._arrays = {
             name: np.zeros(shape, dtype)
             for name, (shape, dtype) in _layout(
