@@ -177,7 +177,7 @@ def default_run_id(run_dir: Path) -> str:
     return f"{stem}-{int(time.time())}"
 
 
-def build_trainer(cfg: LearnerConfig, guard: AbstractContextManager[object]) -> Trainer:
+def build_trainer(cfg: LearnerConfig, guard: AbstractContextManager[object] | None = None) -> Trainer:
     """The trainer ``cfg`` describes: networks from torch's generator seeded with ``cfg.seed``, batches
     and the replay's own generator from ``cfg.seed``."""
     torch.manual_seed(cfg.seed)

@@ -7,16 +7,12 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from proto.episode import Augmentation, Episode
 from services.common.config import ServiceConfig
-from services.learner.config import LearnerConfig
-from services.learner.core.networks import NetConfig, build_actor, build_critic
-from services.learner.core.rate_limiter import SampleToInsertRatio
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac import RecurrentSAC, SacSettings
-from services.learner.core.trainer import Trainer, TrainerSettings
+from services.learner.config import LearnerConfig, build_trainer
+from services.learner.core.networks import NetConfig
+from services.learner.core.trainer import Trainer
 from tests.helpers import build_episode
 
 SIZE = 12
@@ -85,25 +81,10 @@ def tiny_learner_config(run_dir: Path, service: ServiceConfig, **kw) -> LearnerC
     return LearnerConfig(**defaults)
 
 
-def tiny_trainer(
-    samples_per_insert: float = 0.5,
-    min_steps: int = 20,
-    error_buffer: float = 5.0,
-    *,
-    seed: int = 0,
-    guard: AbstractContextManager[object] | None = None,
-    **settings,
-) -> Trainer:
-    """A trainer of ``TINY_NET`` on a small replay (episodes of up to 20 steps), batches of 4, new
-    weights due every 2 updates; ``settings`` override the other ``TrainerSettings``."""
-    torch.manual_seed(seed)
-    sac = RecurrentSAC(build_actor(TINY_NET), build_critic(TINY_NET), SacSettings())
-    replay = SequenceReplay(2_000, image_size=SIZE, seq_len=20, seed=seed)
-    limiter = SampleToInsertRatio(samples_per_insert, min_steps, error_buffer)
-    trainer_settings = TrainerSettings(
-        **{"batch_size": 4, "trim_batches": True, "publish_every": 2, **settings}
-    )
-    return Trainer(sac, replay, limiter, np.random.default_rng(seed), trainer_settings, guard)
+def tiny_trainer(*, guard: AbstractContextManager[object] | None = None, **kw) -> Trainer:
+    """The trainer of ``tiny_learner_config`` (``kw`` overrides its fields), built as the service builds
+    its own."""
+    return build_trainer(tiny_learner_config(Path("unused"), ServiceConfig(), **kw), guard)
 
 
 def learner_child(endpoint: str, run_dir: str, resume: bool, instance: str) -> None:

@@ -89,7 +89,7 @@ def test_updates_run_only_within_the_ratio_and_copies_are_not_env_steps() -> Non
 
 
 def test_the_run_budget_caps_the_gate() -> None:
-    trainer = tiny_trainer(max_env_steps=25)
+    trainer = tiny_trainer(samples_per_insert=0.5, min_steps=20, error_buffer=5.0, max_env_steps=25)
     trainer.insert(learner_episode(0, T=10))
     assert trainer.gate().allowed == 25
     for k in (1, 2):
@@ -107,7 +107,7 @@ def test_a_refused_episode_changes_nothing() -> None:
 
 
 def test_the_gate_message_carries_the_reading() -> None:
-    trainer = tiny_trainer()
+    trainer = tiny_trainer(samples_per_insert=0.5, min_steps=20, error_buffer=5.0)
     trainer.insert(learner_episode(0, T=10))
     gate = trainer.gate().message("learner-0", "run-1", 3, 12.5)
     assert (gate.learner_id, gate.run_id, gate.policy_version, gate.created_at) == (
