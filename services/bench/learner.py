@@ -45,13 +45,13 @@ from services.bench.harness import (
 )
 from services.bench.reference import PUBLIC_UPDATE_SECONDS_BY_THREADS
 from services.bench.report import emit
+from services.learner.config import PRESETS as LEARNER_PRESETS
 from services.learner.core.batch import to_batch
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.learner.core.privileged import STATE_DIM
 from services.learner.core.replay import SequenceReplay, public_reference_bytes
 from services.learner.core.sac import RecurrentSAC
-from services.learner.main import PRESETS as LEARNER_PRESETS
 
 CONSUMER = "bench-consumer"
 

@@ -10,17 +10,26 @@ a crash mid-write leaves the previous checkpoint intact. The previous file is ke
 Loading uses ``torch.load(weights_only=True)``: only tensors, numbers, strings, lists and dicts can
 come back, never arbitrary Python objects. Numpy arrays (replay) travel as tensors and numpy's RNG
 state as a JSON string.
+
+What goes in (``save_trainer``) and how it comes back into a trainer (``restore_trainer``) is
+assembled here too, beside the file format, so the two cannot drift apart. ``due`` says when the
+service writes one: every ``checkpoint_minutes`` and every ``checkpoint_every`` updates, if set.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from services.learner.core.trainer import Trainer
 
 FILE = "learner.pt"
 PREVIOUS = "learner.prev.pt"
@@ -105,3 +114,52 @@ def load(directory: Path) -> tuple[dict, dict, dict]:
 
 def exists(directory: Path) -> bool:
     return (directory / FILE).exists() or (directory / PREVIOUS).exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# What a learner checkpoint holds
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Lineage:
+    """What a resumed learner carries on besides the trainer's state: its weights version lineage and
+    the latest update's statistics."""
+
+    version: int
+    run_id: str
+    last: dict[str, float]
+
+
+def due(seconds_since_last: float, updates: int, minutes: float, every: int) -> bool:
+    """Whether a checkpoint is due: ``minutes`` (> 0) have passed since the last one, or ``updates`` (> 0)
+    is a multiple of ``every`` (> 0)."""
+    by_time = minutes > 0 and seconds_since_last >= 60.0 * minutes
+    return by_time or (every > 0 and updates > 0 and updates % every == 0)
+
+
+def save_trainer(directory: Path, trainer: Trainer, lineage: Lineage, config: dict[str, Any]) -> Path:
+    """Write ``trainer``'s whole state (networks, optimisers, alpha, RNG states, replay, limiter) with
+    ``lineage``, the env steps and ``config`` (the resolved settings, JSON-able) as metadata.
+    The caller keeps the replay and the limiter still meanwhile."""
+    meta = {
+        "version": lineage.version,
+        "run_id": lineage.run_id,
+        "env_steps": trainer.env_steps,
+        "limiter": trainer.limiter.state_dict(),
+        "last": lineage.last,
+        "config": config,
+        "saved_at": time.time(),
+    }
+    learner = {"sac": trainer.sac.state_dict(), "rng": rng_state(trainer.rng)}
+    return save(directory, learner=learner, replay=trainer.replay.state_dict(), meta=meta)
+
+
+def restore_trainer(directory: Path, trainer: Trainer) -> Lineage:
+    """Load the checkpoint in ``directory`` into ``trainer``; returns the lineage it continues."""
+    learner, replay, meta = load(directory)
+    trainer.sac.load_state_dict(learner["sac"])
+    restore_rng(learner["rng"], trainer.rng)
+    trainer.replay.load_state_dict(replay)
+    trainer.limiter.load_state_dict(meta["limiter"])
+    return Lineage(int(meta["version"]), str(meta["run_id"]), dict(meta.get("last", {})))

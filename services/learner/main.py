@@ -1,30 +1,23 @@
 """`mea learner`: train recurrent SAC (Equi-RSAC) from replay and broadcast versioned weights.
 
+The training (replay, sample-to-insert limiter, SAC updates, the replay gate's arithmetic) is the
+pure ``services.learner.core.trainer``; this shell wires it to the bus, the weights server, the
+checkpoints (``services.learner.checkpoint``) and the metrics (``services.learner.metrics``).
+
 Threads
     * ingest: drains ``EPISODES_AUGMENTED`` (raw episodes pass through the augmenter, then their
-      copies) into the sequence replay, and publishes the replay gate. It never waits on training,
-      so the Zenoh receive thread is never held up by a gradient update.
-    * train (main thread): while the sample-to-insert limiter allows, samples 32 whole episodes,
-      runs one SAC update, and every ``publish_every`` updates announces a new weights version.
+      copies) into the sequence replay, and publishes the replay gate (``ReplayGate`` on
+      ``learner/gate``: how many env steps the learner takes before producers should wait; it asks,
+      it never drops). It never waits on training, so the Zenoh receive thread is never held up.
+    * train (main thread): while the limiter allows, samples whole episodes, runs one SAC update, and
+      every ``publish_every`` updates announces a new weights version; otherwise it waits (counted in
+      ``mea_learner_wait_seconds_total``).
 
-Rate limiting (``services.learner.core.rate_limiter``)
-    Inserts are counted in raw env steps (augmented copies are not new experience) and samples in
-    updates. The learner trains only while updates <= samples_per_insert x env steps + slack, so a
-    slow actor fleet never makes it over-train the same data, and it waits (counted in
-    ``mea_learner_wait_seconds_total``) until ``min_steps`` env steps are in. The other side is the
-    replay gate (``ReplayGate`` on ``learner/gate``): the learner publishes how many env steps it will
-    take before producers should wait, and actors hold back new episodes while that allowance is
-    used up, so fast actors do not run ahead of the learner's update budget. Everything published
-    is still accepted: the gate asks, it never drops.
-
-Weights
-    Version 0 (random initial weights) is published at start so that actors can act at once;
-    a resumed run publishes checkpoint version + 1 and keeps the run id: one version lineage.
-
-Checkpoints (``services.learner.checkpoint``)
-    Every ``checkpoint_minutes`` (and every ``checkpoint_every`` updates if set) and on SIGTERM,
-    atomically: networks, optimisers, alpha, replay contents, limiter, counters, RNG states,
-    weights version and run id. ``--resume`` continues from it.
+Weights and checkpoints
+    Version 0 (random initial weights) is published at start so that actors can act at once. Every
+    ``checkpoint_minutes`` (and every ``checkpoint_every`` updates if set) and on SIGTERM the whole
+    state is checkpointed atomically; ``--resume`` continues from it, publishes checkpoint version + 1
+    and keeps the run id: one version lineage.
 
 Bad input
     An episode the replay refuses (no policy images, wrong shape, too long) is logged, counted in
@@ -36,17 +29,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import re
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from proto.control import ReplayGate
 from proto.episode import Episode
 from proto.topics import EPISODES_AUGMENTED, REPLAY_GATE
 from proto.weights import WeightsBlob
@@ -56,210 +45,11 @@ from services.common.config import ServiceConfig
 from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.weights import WeightsServer
 from services.learner import checkpoint
-from services.learner.core.batch import to_batch
-from services.learner.core.networks import PRESETS as NET_PRESETS
-from services.learner.core.networks import NetConfig, build_actor, build_critic
-from services.learner.core.policy import OBSERVATIONS, PolicySpec, actor_tensors
-from services.learner.core.privileged import STATE_DIM, episode_critic_state
-from services.learner.core.rate_limiter import SampleToInsertRatio
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac import RecurrentSAC, SacSettings
+from services.learner.config import PRESETS, LearnerConfig, build_trainer, default_run_id
+from services.learner.core.policy import PolicySpec, actor_tensors
+from services.learner.metrics import UpdateRate, learner_metrics, record_gate, record_update, rejection_reason
 
 log = logging.getLogger(__name__)
-
-ALGORITHMS = ("equi_rsac", "rsac")
-
-
-@dataclass(frozen=True)
-class LearnerConfig:
-    """Train recurrent SAC from replayed episodes and broadcast the actor's weights."""
-
-    algorithm: str = "equi_rsac"
-    """equi_rsac (C4/D4-equivariant, `--net.group c4|d4`) or rsac (the non-equivariant twin, same widths)."""
-    net: NetConfig = field(default_factory=lambda: NET_PRESETS["paper"])
-    """Network widths and symmetry group."""
-    sac: SacSettings = SacSettings()
-    """SAC hyperparameters."""
-    observation: str = "voxel"
-    """What the policy sees: voxel (orthographic projection; EquiObs/MEA) or depth (rendered; Equi-RSAC)."""
-    replay_capacity: int = 100_000
-    """Replay capacity in transitions (raw and augmented copies alike; demonstrations are never evicted)."""
-    batch_size: int = 32
-    """Whole episodes per update."""
-    demo_fraction: float = 0.0
-    """Share of every batch drawn from the demonstration set (demos and all their augmented copies),
-    the rest from the other episodes (RLPD / SERL symmetric sampling); 0 samples uniformly (the paper)."""
-    successes_as_demos: bool = False
-    """Episodes with a positive reward (online successes and their copies) join the demonstration set
-    for demo_fraction and the BC term: self-imitation of what already worked (off: demos only)."""
-    trim_batches: bool = True
-    """Pad each batch to its longest episode instead of seq_len (same losses, less work)."""
-    seq_len: int = 50
-    """Episodes are padded to this many steps (the task's time limit)."""
-    samples_per_insert: float = 1.0
-    """Updates per raw env step (Equi-RSAC: one update per env step)."""
-    min_steps: int = 100
-    """Raw env steps in replay before the first update."""
-    error_buffer: float = 200.0
-    """Slack (in updates) around samples_per_insert x env steps before either side waits."""
-    publish_every: int = 10
-    """Announce new weights every this many updates."""
-    checkpoint_minutes: float = 10.0
-    """Checkpoint period (and always on shutdown); 0 disables periodic checkpoints."""
-    checkpoint_every: int = 0
-    """Also checkpoint every this many updates (0: off)."""
-    run_dir: Path = Path("runs/learner")
-    """Directory for the resolved config and checkpoints/."""
-    run_id: str = ""
-    """Version lineage id; empty derives one from run_dir and the start time (kept on --resume)."""
-    resume: bool = False
-    """Continue from run_dir/checkpoints if there is a checkpoint there."""
-    max_updates: int = 0
-    """Stop after this many updates (0: until stopped)."""
-    max_env_steps: int = 0
-    """Env-step budget of the run: the replay gate never allows more (actors stop there); 0: none."""
-    threads: int = 0
-    """torch intra-op threads (0: torch's default)."""
-    seed: int = 0
-    """Seed of networks, sampling and exploration noise."""
-    queue: int = 64
-    """Incoming episodes buffered between Zenoh and the ingest thread."""
-    gate_seconds: float = 0.5
-    """Period of the replay gate."""
-    service: ServiceConfig = ServiceConfig()
-    """Identity, transport, metrics and logs."""
-
-    def __post_init__(self) -> None:
-        if self.algorithm not in ALGORITHMS:
-            raise ValueError(f"algorithm must be one of {ALGORITHMS}, not {self.algorithm!r}")
-        if self.algorithm == "rsac" and self.net.group != "none":  # the twin: same widths, plain layers
-            object.__setattr__(self, "net", dataclasses.replace(self.net, group="none"))
-        if self.algorithm == "equi_rsac" and self.net.group == "none":
-            raise ValueError("equi_rsac needs --net.group c4 or d4 (the plain twin is --algorithm rsac)")
-        if self.observation not in OBSERVATIONS:
-            raise ValueError(f"observation must be one of {OBSERVATIONS}, not {self.observation!r}")
-        for name in ("batch_size", "seq_len", "publish_every", "queue"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1")
-        if self.replay_capacity < self.seq_len:
-            raise ValueError("replay_capacity must hold at least one episode (>= seq_len)")
-        if not 0.0 <= self.demo_fraction <= 1.0:
-            raise ValueError(f"demo_fraction must be in [0, 1], got {self.demo_fraction}")
-        if self.net.critic_input == "state" and self.sac.share_encoder:
-            raise ValueError("sac.share_encoder needs the image critic (net.critic_input image)")
-        if self.samples_per_insert <= 0 or self.min_steps < 0 or self.error_buffer < 0:
-            raise ValueError("samples_per_insert must be > 0, min_steps and error_buffer >= 0")
-
-
-PRESETS = {
-    "paper": LearnerConfig(),
-    # cpu-small: the recipe for two CPU cores and a 20K env-step budget (README, "Presets"). Cuts:
-    # halved network widths, 8 episodes per batch instead of 32, 0.5 updates per env step instead of
-    # 1 (the replay gate lets actors run 2 steps per update). Additions, each a field: half of every
-    # batch from the demonstration set (demos, their copies, online successes), a BC term, alpha from
-    # 0.01, LayerNorm in the Q MLPs, one encoder shared by actor and critic, critic targets bounded
-    # below by the observed return; replay 200k holds a whole 20K-step run with its copies.
-    "cpu-small": LearnerConfig(
-        net=dataclasses.replace(NET_PRESETS["cpu-small"], critic_layer_norm=True, actor_prev_action=False),
-        sac=SacSettings(init_alpha=0.01, bc_weight=2.0, share_encoder=True, return_bound=True),
-        demo_fraction=0.5,
-        successes_as_demos=True,
-        batch_size=8,
-        samples_per_insert=0.5,
-        replay_capacity=200_000,
-        min_steps=100,
-        error_buffer=100.0,
-        publish_every=5,
-        checkpoint_minutes=5.0,
-    ),
-    # smoke: the cpu-small networks at the smallest useful batch, for end-to-end tests of the stack
-    # (weights versions every 2 updates); it does not learn anything in the time it runs.
-    "smoke": LearnerConfig(
-        net=NET_PRESETS["cpu-small"],
-        batch_size=2,
-        samples_per_insert=0.5,
-        replay_capacity=5_000,
-        min_steps=50,
-        error_buffer=50.0,
-        publish_every=2,
-        checkpoint_minutes=0.0,
-    ),
-}
-
-# cpu-small-state: cpu-small with a critic on the simulator's privileged state instead of images (an
-# asymmetric actor-critic: ``privileged.py``; the policy still reads images, and the critic is used
-# in simulation only). Same demo share, BC, temperature and return bound; no shared encoder (the
-# critic has none) and no critic LayerNorm (the state critic's MLPs have their own). Its updates are
-# cheaper, so it affords the paper's 1.0 update per env step in about 35 minutes for 20K env steps
-# (Block Pull at 20K: 0.48 and 0.28 for seeds 0 and 1, against 0.28 with 0.5 for seed 0; README).
-PRESETS["cpu-small-state"] = dataclasses.replace(
-    PRESETS["cpu-small"],
-    net=dataclasses.replace(PRESETS["cpu-small"].net, critic_input="state", critic_layer_norm=False),
-    sac=dataclasses.replace(PRESETS["cpu-small"].sac, share_encoder=False),
-    samples_per_insert=1.0,
-)
-
-
-def default_run_id(run_dir: Path) -> str:
-    stem = re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:60] or "run"
-    return f"{stem}-{int(time.time())}"
-
-
-# --------------------------------------------------------------------------------------------
-# metrics
-# --------------------------------------------------------------------------------------------
-
-
-def _metrics(m) -> dict:
-    return {
-        "updates": m.counter("mea_learner_updates", "Gradient updates done."),
-        "update_seconds": m.histogram(
-            "mea_learner_update_seconds",
-            "Wall time of one update (sample, transfer, losses, optimiser steps).",
-            (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0),
-        ),
-        "loss": m.gauge("mea_learner_loss", "Latest loss by name (critic, actor, alpha, bc).", ["loss"]),
-        "alpha": m.gauge("mea_learner_alpha", "Entropy temperature."),
-        "batch_demo_share": m.gauge(
-            "mea_learner_batch_demo_share",
-            "Share of the latest batch's episodes drawn from the demonstration set.",
-        ),
-        "batch_reward_transitions": m.gauge(
-            "mea_learner_batch_reward_transitions", "Transitions with reward > 0 in the latest batch."
-        ),
-        "entropy": m.gauge("mea_learner_policy_entropy", "Latest policy entropy estimate (-mean log pi)."),
-        "q": m.gauge("mea_learner_q", "Latest mean Q values (q1, q2, target).", ["stat"]),
-        "updates_per_second": m.gauge("mea_learner_updates_per_second", "Updates per second (recent)."),
-        "wait": m.counter("mea_learner_wait_seconds", "Time the trainer waited for the limiter or data."),
-        "episodes_in": m.counter("mea_learner_episodes_in", "Episodes inserted, by kind.", ["kind"]),
-        "rejected": m.counter(
-            "mea_learner_rejected_episodes", "Episodes the replay refused, by reason.", ["reason"]
-        ),
-        "env_steps": m.gauge("mea_learner_env_steps", "Raw env steps inserted (the limiter's inserts)."),
-        "replay_transitions": m.gauge("mea_learner_replay_transitions", "Transitions stored in replay."),
-        "replay_episodes": m.gauge("mea_learner_replay_episodes", "Episodes stored in replay."),
-        "replay_bytes": m.gauge("mea_learner_replay_bytes", "Bytes reserved by the replay arrays."),
-        "can_sample": m.gauge("mea_learner_limiter_can_sample", "1 if the limiter allows an update now."),
-        "samples_allowed": m.gauge("mea_learner_limiter_samples_allowed", "Updates the limiter allows now."),
-        "inserts_allowed": m.gauge(
-            "mea_learner_limiter_inserts_allowed", "Env steps producers may still add before waiting."
-        ),
-        "version": m.gauge("mea_learner_weights_version", "Latest weights version published."),
-        "publish_seconds": m.histogram(
-            "mea_learner_weights_publish_seconds",
-            "Export, encode and announce one weights version.",
-            (0.001, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0),
-        ),
-        "checkpoints": m.counter("mea_learner_checkpoints", "Checkpoints written."),
-        "checkpoint_seconds": m.histogram(
-            "mea_learner_checkpoint_seconds", "Time to write one checkpoint.", (0.1, 0.5, 1, 2, 5, 10, 30, 60)
-        ),
-    }
-
-
-# --------------------------------------------------------------------------------------------
-# the service
-# --------------------------------------------------------------------------------------------
 
 
 class Learner:
@@ -269,52 +59,31 @@ class Learner:
         self.cfg, self.ctx, self.sub = cfg, ctx, sub
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
-        torch.manual_seed(cfg.seed)
-        self.rng = np.random.default_rng(cfg.seed)
-        self.sac = RecurrentSAC(build_actor(cfg.net), build_critic(cfg.net), cfg.sac)
-        self.replay = SequenceReplay(
-            cfg.replay_capacity,
-            image_size=cfg.net.image_size,
-            seq_len=cfg.seq_len,
-            channels=cfg.net.in_channels,
-            seed=cfg.seed,
-            state_dim=STATE_DIM if cfg.net.critic_input == "state" else 0,
-        )
-        self.limiter = SampleToInsertRatio(cfg.samples_per_insert, cfg.min_steps, cfg.error_buffer)
+        self.lock = threading.Lock()  # the trainer's guard: ingest vs the training loop
+        self.trainer = build_trainer(cfg, self.lock)
         self.spec = PolicySpec(cfg.net, cfg.observation)
-        self.lock = threading.Lock()
-        self.mx = _metrics(ctx.metrics)
-        self.mx["replay_bytes"].set(self.replay.nbytes)
+        self.mx = learner_metrics(ctx.metrics)
+        self.mx["replay_bytes"].set(self.trainer.replay.nbytes)
         self.server = WeightsServer(ctx.bus, ctx.instance)
         self.run_id = cfg.run_id or default_run_id(cfg.run_dir)
         self.version = -1
         self.last: dict[str, float] = {}
         self.counts = {"episodes_in": 0, "rejected": 0}
         self.wait_seconds = 0.0
-        self._recent: list[float] = []
+        self._rate = UpdateRate()
         self._stop_ingest = threading.Event()
         self._ingest_thread: threading.Thread | None = None
         self.ckpt_dir = cfg.run_dir / "checkpoints"
         self._last_ckpt = time.monotonic()
 
-    @property
-    def env_steps(self) -> int:
-        """Raw env steps inserted: the limiter's inserts (augmented copies are not counted)."""
-        return self.limiter.inserts
-
     # ---------------------------------------------------------------- replay side
     def ingest(self, ep: Episode) -> None:
         kind = "raw" if ep.augmentation is None else ep.augmentation.kind
         try:
-            state = episode_critic_state(ep) if self.replay.state_dim else None
-            with self.lock:
-                self.replay.insert(ep, state)
-                if ep.augmentation is None:
-                    self.limiter.inserted(ep.num_steps)
+            self.trainer.insert(ep)
         except ValueError as exc:
-            reason = _reason(str(exc))
             self.counts["rejected"] += 1
-            self.mx["rejected"].labels(reason).inc()
+            self.mx["rejected"].labels(rejection_reason(str(exc))).inc()
             log.warning("episode refused", extra={"episode_id": ep.episode_id, "error": str(exc)[:300]})
             return
         self.counts["episodes_in"] += 1
@@ -331,29 +100,9 @@ class Learner:
                 next_gate = time.monotonic() + self.cfg.gate_seconds
 
     def publish_gate(self) -> None:
-        with self.lock:
-            inserted = self.env_steps
-            allowed = inserted + max(0, self.limiter.inserts_allowed())
-            if self.cfg.max_env_steps:
-                allowed = max(inserted, min(allowed, self.cfg.max_env_steps))
-            replay_n, samples_allowed = len(self.replay), self.limiter.samples_allowed()
-            can_sample = self.limiter.can_sample()
-        self.mx["env_steps"].set(inserted)
-        self.mx["replay_transitions"].set(replay_n)
-        self.mx["replay_episodes"].set(self.replay.num_episodes)
-        self.mx["inserts_allowed"].set(allowed - inserted)
-        self.mx["samples_allowed"].set(samples_allowed)
-        self.mx["can_sample"].set(int(can_sample))
-        gate = ReplayGate(
-            learner_id=self.ctx.instance,
-            run_id=self.run_id,
-            inserted_steps=inserted,
-            allowed_steps=allowed,
-            updates=self.sac.updates,
-            policy_version=max(self.version, -1),
-            replay_transitions=replay_n,
-            created_at=time.time(),
-        )
+        reading = self.trainer.gate()
+        record_gate(self.mx, reading)
+        gate = reading.message(self.ctx.instance, self.run_id, max(self.version, -1), time.time())
         try:
             self.ctx.bus.publish(REPLAY_GATE, gate, source=self.ctx.instance)
         except Exception:  # noqa: BLE001 - a lost gate is replaced half a second later
@@ -372,56 +121,20 @@ class Learner:
     def try_update(self) -> bool:
         """One update if the limiter allows it; False (after a short wait) otherwise."""
         t0 = time.perf_counter()
-        with self.lock:
-            ready = self.replay.num_episodes > 0 and self.limiter.can_sample()
-            sample = (
-                self.replay.sample(
-                    self.cfg.batch_size,
-                    self.rng,
-                    demo_fraction=self.cfg.demo_fraction,
-                    successes_as_demos=self.cfg.successes_as_demos,
-                    trim=self.cfg.trim_batches,
-                )
-                if ready
-                else None
-            )
-        if sample is None:
+        info = self.trainer.step()
+        if info is None:
             self.ctx.shutdown.wait(0.02)
             waited = time.perf_counter() - t0
             self.wait_seconds += waited
             self.mx["wait"].inc(waited)
             return False
-        info = self.sac.update(to_batch(sample))
-        info["batch_demo_share"] = float(sample.from_demo_set.mean())
-        info["batch_reward_transitions"] = float((sample.rewards > 0).sum())
-        with self.lock:
-            self.limiter.sampled()
-        dt = time.perf_counter() - t0
-        self._record(info, dt)
-        if self.sac.updates % self.cfg.publish_every == 0:
+        self.last = info
+        record_update(self.mx, info, time.perf_counter() - t0, self._rate.tick(time.monotonic()))
+        if not math.isfinite(info["critic_loss"]):
+            log.error("non-finite critic loss", extra={"updates": self.trainer.updates})
+        if self.trainer.publish_due():
             self.publish_weights()
         return True
-
-    def _record(self, info: dict[str, float], dt: float) -> None:
-        self.last = info
-        mx = self.mx
-        mx["updates"].inc()
-        mx["update_seconds"].observe(dt)
-        for name in ("critic", "actor", "alpha", "bc"):
-            if f"{name}_loss" in info:
-                mx["loss"].labels(name).set(info[f"{name}_loss"])
-        mx["alpha"].set(info["alpha"])
-        mx["batch_demo_share"].set(info["batch_demo_share"])
-        mx["batch_reward_transitions"].set(info["batch_reward_transitions"])
-        mx["entropy"].set(info["entropy"])
-        for stat, key in (("q1", "q1"), ("q2", "q2"), ("target", "target_q")):
-            mx["q"].labels(stat).set(info[key])
-        now = time.monotonic()
-        self._recent = [t for t in self._recent if now - t < 30.0] + [now]
-        if len(self._recent) > 1:
-            mx["updates_per_second"].set((len(self._recent) - 1) / max(1e-9, now - self._recent[0]))
-        if not math.isfinite(info["critic_loss"]):
-            log.error("non-finite critic loss", extra={"updates": self.sac.updates})
 
     def publish_weights(self) -> WeightsBlob:
         t0 = time.perf_counter()
@@ -430,7 +143,7 @@ class Learner:
             self.version,
             "equi_rsac" if self.cfg.algorithm == "equi_rsac" else "rsac",
             self.run_id,
-            actor_tensors(self.sac.actor),
+            actor_tensors(self.trainer.sac.actor),
             self.spec.to_json(),
         )
         self.server.publish(blob)
@@ -441,54 +154,34 @@ class Learner:
 
     # ---------------------------------------------------------------- checkpoints
     def maybe_checkpoint(self) -> None:
-        cfg = self.cfg
-        due = (
-            cfg.checkpoint_minutes > 0 and time.monotonic() - self._last_ckpt >= 60.0 * cfg.checkpoint_minutes
-        )
-        due |= (
-            cfg.checkpoint_every > 0 and self.sac.updates > 0 and self.sac.updates % cfg.checkpoint_every == 0
-        )
-        if due:
+        cfg, since = self.cfg, time.monotonic() - self._last_ckpt
+        if checkpoint.due(since, self.trainer.updates, cfg.checkpoint_minutes, cfg.checkpoint_every):
             self.save_checkpoint()
 
     def save_checkpoint(self) -> Path:
         t0 = time.perf_counter()
+        lineage = checkpoint.Lineage(self.version, self.run_id, self.last)
         with self.lock:
-            meta = {
-                "version": self.version,
-                "run_id": self.run_id,
-                "env_steps": self.env_steps,
-                "limiter": self.limiter.state_dict(),
-                "last": self.last,
-                "config": config.to_jsonable(self.cfg),
-                "saved_at": time.time(),
-            }
-            learner = {"sac": self.sac.state_dict(), "rng": checkpoint.rng_state(self.rng)}
-            path = checkpoint.save(self.ckpt_dir, learner=learner, replay=self.replay.state_dict(), meta=meta)
+            path = checkpoint.save_trainer(self.ckpt_dir, self.trainer, lineage, config.to_jsonable(self.cfg))
         self._last_ckpt = time.monotonic()
         self.mx["checkpoints"].inc()
         self.mx["checkpoint_seconds"].observe(time.perf_counter() - t0)
-        log.info("checkpoint", extra={"updates": self.sac.updates, "version": self.version,
+        log.info("checkpoint", extra={"updates": self.trainer.updates, "version": self.version,
                                       "seconds": round(time.perf_counter() - t0, 3)})  # fmt: skip
         return path
 
     def restore(self) -> None:
-        learner, replay, meta = checkpoint.load(self.ckpt_dir)
-        self.sac.load_state_dict(learner["sac"])
-        checkpoint.restore_rng(learner["rng"], self.rng)
-        self.replay.load_state_dict(replay)
-        self.limiter.load_state_dict(meta["limiter"])
-        self.version, self.run_id = int(meta["version"]), str(meta["run_id"])
-        self.last = dict(meta.get("last", {}))
-        log.info("resumed", extra={"version": self.version, "updates": self.sac.updates,
-                                   "replay_transitions": len(self.replay), "run_id": self.run_id})  # fmt: skip
+        lineage = checkpoint.restore_trainer(self.ckpt_dir, self.trainer)
+        self.version, self.run_id, self.last = lineage.version, lineage.run_id, lineage.last
+        log.info("resumed", extra={"version": self.version, "updates": self.trainer.updates,
+                                   "replay_transitions": len(self.trainer.replay), "run_id": self.run_id})  # fmt: skip
 
     # ---------------------------------------------------------------- loop
     def heartbeat_counters(self) -> dict[str, float]:
         out = {
-            "updates": self.sac.updates,
-            "env_steps": self.env_steps,
-            "replay_transitions": len(self.replay),
+            "updates": self.trainer.updates,
+            "env_steps": self.trainer.env_steps,
+            "replay_transitions": len(self.trainer.replay),
             "version": self.version,
             "episodes_in": self.counts["episodes_in"],
             "rejected": self.counts["rejected"],
@@ -497,19 +190,10 @@ class Learner:
         out.update({k: v for k, v in self.last.items() if math.isfinite(v)})
         return out
 
-    def done(self) -> bool:
-        return self.cfg.max_updates > 0 and self.sac.updates >= self.cfg.max_updates
-
     def loop(self) -> None:
-        while not self.ctx.shutdown.is_set() and not self.done():
+        while not self.ctx.shutdown.is_set() and not self.trainer.done():
             if self.try_update():
                 self.maybe_checkpoint()
-
-
-def _reason(message: str) -> str:
-    """A short, bounded metric label from a replay error ("images: ..." -> "images")."""
-    head = message.split(":", 1)[0].strip().split()[0] if message.strip() else "invalid"
-    return re.sub(r"[^a-z_]", "", head.lower())[:32] or "invalid"
 
 
 def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = None) -> int:
@@ -536,7 +220,7 @@ def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None =
         core.start_ingest()
         ctx.detail = f"run {core.run_id}"
         log.info("training", extra={"algorithm": cfg.algorithm, "group": cfg.net.group, "run_id": core.run_id,
-                                    "version": core.version, "replay_bytes": core.replay.nbytes})  # fmt: skip
+                                    "version": core.version, "replay_bytes": core.trainer.replay.nbytes})  # fmt: skip
         try:
             core.loop()
         finally:
@@ -544,7 +228,7 @@ def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None =
             core.publish_weights()
             core.save_checkpoint()
             core.server.close()
-        log.info("learner done", extra={"updates": core.sac.updates, "version": core.version})
+        log.info("learner done", extra={"updates": core.trainer.updates, "version": core.version})
     return 0
 
 
@@ -565,4 +249,4 @@ def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
     return args + (["--resume"] if run_cfg.resume is not None else [])
 
 
-__all__ = ["Learner", "LearnerConfig", "PRESETS", "launch_args", "main", "run"]
+__all__ = ["Learner", "launch_args", "main", "run"]

@@ -21,8 +21,9 @@ Values and quantisation (``DepthImageSpec``)
 
 Channels
     ``policy_images`` stacks channel 0 = depth codes, channel 1 = jaw code ``round(clip(jaw, 0, 1) *
-    255)`` tiled, computed exactly as ``projection.quantized_observations`` does (float32 jaw first),
-    so the learner's replay (which stores channel 1 as one byte per image) accepts either path.
+    255)`` tiled, in the one policy image format (``services.observation.image_format``) that the
+    voxel path uses too, so the learner's replay (which stores channel 1 as one byte per image)
+    accepts either path.
 
 Rotation (``rotate_images``), the public augmentation without its pitfall P3
     The public code rotates channel 0 with ``scipy.ndimage.affine_transform(order=1, mode='nearest')``
@@ -54,7 +55,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.observation.projection import DEPTH_CHANNEL, JAW_CHANNEL, jaw_codes
+from services.observation.image_format import CODE_MAX, DEPTH_CHANNEL, N_CHANNELS, encode
 
 __all__ = ["DepthImageSpec", "DEFAULT_DEPTH_SPEC", "depth_codes", "dequantize_depth", "policy_images",
            "rotate_images", "rotation_matrix"]  # fmt: skip
@@ -120,7 +121,7 @@ def policy_images(
     """(T, N, N) depths and (T,) jaw openings -> (T, 2, N, N) uint8 policy stack.
 
     Channel 0: ``depth_codes``; channel 1: the jaw code ``round(clip(jaw, 0, 1) * 255)`` tiled, with
-    the jaw first cast to float32 as ``projection.quantized_observations`` does (identical codes).
+    the jaw first cast to float32 (``image_format.encode``, as for the voxel image: identical codes).
     """
     d = np.asarray(depth)
     if d.ndim != 3:
@@ -128,10 +129,7 @@ def policy_images(
     jaw32 = np.asarray(jaw, dtype=np.float32)
     if jaw32.shape != d.shape[:1]:
         raise ValueError(f"jaw must have shape {d.shape[:1]}, got {jaw32.shape}")
-    out = np.empty((d.shape[0], 2, spec.size, spec.size), np.uint8)
-    out[:, DEPTH_CHANNEL] = depth_codes(d, spec)
-    out[:, JAW_CHANNEL] = jaw_codes(jaw32)[:, None, None]
-    return out
+    return encode(depth_codes(d, spec), jaw32)
 
 
 def rotation_matrix(phi: float, size: int) -> np.ndarray:
@@ -156,7 +154,7 @@ def rotate_images(images: np.ndarray, phi: float) -> np.ndarray:
     image axes. Returns a new array.
     """
     x = np.asarray(images)
-    if x.dtype != np.uint8 or x.ndim != 4 or x.shape[1] != 2 or x.shape[2] != x.shape[3]:
+    if x.dtype != np.uint8 or x.ndim != 4 or x.shape[1] != N_CHANNELS or x.shape[2] != x.shape[3]:
         raise ValueError(f"images must be uint8 of shape (T, 2, N, N), got {x.dtype} {x.shape}")
     if not math.isfinite(phi):
         raise ValueError(f"phi must be finite, got {phi!r}")
@@ -172,5 +170,6 @@ def rotate_images(images: np.ndarray, phi: float) -> np.ndarray:
         )
         warped = cv2.warpAffine(frames, M, (N, N), flags=flags, borderMode=cv2.BORDER_REPLICATE)
         warped = warped.reshape(N, N, -1)  # a single frame comes back without its channel axis
-        out[t0 : t0 + _CV_MAX_CHANNELS, DEPTH_CHANNEL] = np.clip(np.rint(warped), 0, 255).transpose(2, 0, 1)
+        codes = np.clip(np.rint(warped), 0, CODE_MAX)
+        out[t0 : t0 + _CV_MAX_CHANNELS, DEPTH_CHANNEL] = codes.transpose(2, 0, 1)
     return out

@@ -42,7 +42,8 @@ Image orientation convention (downstream code, e.g. the augmenter's rotations, r
 
 Policy input
     ``observation_channels`` stacks channel 0 = depth image, channel 1 = jaw opening tiled.
-    ``quantize`` / ``dequantize`` store that stack as uint8 for a compact replay buffer.
+    ``quantize`` / ``dequantize`` store that stack as uint8 for a compact replay buffer, in the one
+    policy image format (``services.observation.image_format``: channel layout, jaw codes).
 """
 
 from __future__ import annotations
@@ -53,11 +54,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.observation.image_format import (
+    DEPTH_CHANNEL,
+    JAW_CHANNEL,
+    N_CHANNELS,
+    decode_jaw,
+    encode,
+    encode_jaw,
+)
+
 __all__ = [
     "ProjectionSpec",
     "dequantize",
     "dequantize_depth",
-    "jaw_codes",
     "depth_indices",
     "observation_channels",
     "project",
@@ -69,12 +78,6 @@ __all__ = [
     "segments_to_points",
 ]
 
-DEPTH_CHANNEL = 0
-"""Index of the depth image in an observation stack (T, 2, N, N)."""
-JAW_CHANNEL = 1
-"""Index of the tiled jaw opening in an observation stack (T, 2, N, N)."""
-N_CHANNELS = 2
-"""Channels of the policy input."""
 _EMPTY = 255
 """Depth-index code of an empty column inside `project_batch` (real indices are < 254)."""
 _CHUNK_POINTS = 16384
@@ -322,8 +325,7 @@ def quantize(images: np.ndarray, spec: ProjectionSpec = DEFAULT_SPEC) -> np.ndar
         raise ValueError(f"images must have shape (..., {N_CHANNELS}, N, N), got {x.shape}")
     out = np.empty(x.shape, np.uint8)
     out[..., DEPTH_CHANNEL, :, :] = quantize_depth(x[..., DEPTH_CHANNEL, :, :], spec)
-    jaw = np.clip(np.asarray(x[..., JAW_CHANNEL, :, :], dtype=np.float64), 0.0, 1.0)
-    out[..., JAW_CHANNEL, :, :] = np.rint(jaw * 255.0)
+    out[..., JAW_CHANNEL, :, :] = encode_jaw(x[..., JAW_CHANNEL, :, :])
     return out
 
 
@@ -334,7 +336,7 @@ def dequantize(codes: np.ndarray, spec: ProjectionSpec = DEFAULT_SPEC) -> np.nda
         raise ValueError(f"codes must be uint8 of shape (..., {N_CHANNELS}, N, N), got {q.dtype} {q.shape}")
     out = np.empty(q.shape, np.float32)
     out[..., DEPTH_CHANNEL, :, :] = dequantize_depth(q[..., DEPTH_CHANNEL, :, :], spec)
-    out[..., JAW_CHANNEL, :, :] = q[..., JAW_CHANNEL, :, :].astype(np.float32) / np.float32(255.0)
+    out[..., JAW_CHANNEL, :, :] = decode_jaw(q[..., JAW_CHANNEL, :, :])
     return out
 
 
@@ -344,12 +346,6 @@ def _depth_codes(spec: ProjectionSpec) -> np.ndarray:
     codes = quantize_depth(spec.depth_levels, spec)
     codes.flags.writeable = False
     return codes
-
-
-def jaw_codes(jaw: np.ndarray) -> np.ndarray:
-    """Jaw openings -> the jaw channel's codes ``round(clip(jaw, 0, 1) * 255)``, the jaw taken as float32
-    first (as observations store it); shared by every kind of policy image."""
-    return np.rint(np.clip(np.asarray(jaw, dtype=np.float32).astype(np.float64), 0.0, 1.0) * 255.0)
 
 
 def quantized_observations(
@@ -365,10 +361,7 @@ def quantized_observations(
     jaw32 = np.asarray(jaw, dtype=np.float32)
     if jaw32.shape != kmin.shape[:1]:
         raise ValueError(f"jaw must have shape {kmin.shape[:1]}, got {jaw32.shape}")
-    out = np.empty((kmin.shape[0], N_CHANNELS, spec.size, spec.size), np.uint8)
-    np.take(_depth_codes(spec), kmin, out=out[:, DEPTH_CHANNEL])
-    out[:, JAW_CHANNEL] = jaw_codes(jaw32)[:, None, None]
-    return out
+    return encode(_depth_codes(spec).take(kmin), jaw32)
 
 
 def segment_policy_images(

@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import numpy as np
 
 from proto.episode import Augmentation, Episode
 from services.common.config import ServiceConfig
+from services.learner.config import LearnerConfig, build_trainer
 from services.learner.core.networks import NetConfig
-from services.learner.main import LearnerConfig
+from services.learner.core.trainer import Trainer
 from tests.helpers import build_episode
 
 SIZE = 12
@@ -77,6 +79,12 @@ def tiny_learner_config(run_dir: Path, service: ServiceConfig, **kw) -> LearnerC
     )
     defaults.update(kw)
     return LearnerConfig(**defaults)
+
+
+def tiny_trainer(*, guard: AbstractContextManager[object] | None = None, **kw) -> Trainer:
+    """The trainer of ``tiny_learner_config`` (``kw`` overrides its fields), built as the service builds
+    its own."""
+    return build_trainer(tiny_learner_config(Path("unused"), ServiceConfig(), **kw), guard)
 
 
 def learner_child(endpoint: str, run_dir: str, resume: bool, instance: str) -> None:

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from services.learner import checkpoint
+from tests.helpers.learner import learner_episode, tiny_trainer
 
 
 def payload(k: int) -> tuple[dict, dict, dict]:
@@ -73,3 +74,42 @@ def test_rng_state_round_trip():
     rng2 = np.random.default_rng(999)
     checkpoint.restore_rng(state, rng2)
     assert (rng2.random(3) == a).all() and torch.equal(torch.rand(3), b)
+
+
+@pytest.mark.parametrize(
+    ("since", "updates", "minutes", "every", "due"),
+    [
+        (599.9, 3, 10.0, 0, False),
+        (600.0, 3, 10.0, 0, True),
+        (1e9, 3, 0.0, 0, False),  # both schedules off
+        (0.0, 10, 0.0, 5, True),
+        (0.0, 12, 0.0, 5, False),
+        (0.0, 0, 0.0, 5, False),  # no checkpoint before the first update
+        (0.0, 15, 10.0, 5, True),
+    ],
+)
+def test_checkpoint_schedule(since, updates, minutes, every, due):
+    assert checkpoint.due(since, updates, minutes, every) is due
+
+
+def test_a_trainer_round_trips_with_its_lineage(tmp_path):
+    a = tiny_trainer(min_steps=10, seed=1)
+    raw = learner_episode(0, T=10, demo=True)
+    a.insert(raw)
+    a.insert(learner_episode(50, copy_of=raw.episode_id))
+    a.insert(learner_episode(1, T=8))
+    for _ in range(2):
+        assert a.step() is not None
+    lineage = checkpoint.Lineage(version=3, run_id="run-x", last={"critic_loss": 0.5})
+    checkpoint.save_trainer(tmp_path, a, lineage, {"batch_size": 4})
+    _, _, meta = checkpoint.load(tmp_path)
+    assert list(meta) == ["version", "run_id", "env_steps", "limiter", "last", "config", "saved_at"]
+    assert (meta["env_steps"], meta["config"], meta["limiter"]["samples"]) == (18, {"batch_size": 4}, 2)
+
+    b = tiny_trainer(min_steps=10, seed=2)
+    assert checkpoint.restore_trainer(tmp_path, b) == lineage
+    assert (b.updates, b.env_steps, b.limiter.samples) == (2, 18, 2)
+    assert (len(b.replay), b.replay.episode_ids()) == (len(a.replay), a.replay.episode_ids())
+    for name, tensor in a.sac.state_dict()["actor"].items():
+        assert torch.equal(tensor, b.sac.state_dict()["actor"][name]), name
+    assert (b.rng.random(4) == a.rng.random(4)).all()

@@ -12,7 +12,7 @@ from services.actor.main import launch_args as actor_args
 from services.augmenter.main import launch_args as augmenter_args
 from services.common import config
 from services.launcher import CPU_LEARNER_PRESETS, ChildSpec, RunConfig, StatusBoard, resumed_config
-from services.learner.main import PRESETS as LEARNER_PRESETS
+from services.learner.config import PRESETS as LEARNER_PRESETS
 from services.learner.main import launch_args as learner_args
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from services.learner.core.policy import images_from_codes
-from services.learner.core.replay import SequenceBatch
+from services.learner.core.replay_batch import SequenceBatch
 from services.learner.core.sac import Batch
 
 

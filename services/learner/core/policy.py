@@ -5,8 +5,8 @@ recurrent state and the previous action are carried across an episode and cleare
 Weights arrive as a ``WeightsBlob`` (tensors by name, no pickle) whose ``config_json`` names the
 network configuration and the observation the policy expects, so a consumer needs nothing else.
 
-Policy input: uint8 image codes (C, H, W) as stored in replay, scaled by 1/255 (see
-``images_from_codes``); the learner trains on exactly the same mapping.
+Policy input: uint8 image codes (C, H, W) as stored in replay, scaled by the policy image format's
+``INPUT_SCALE`` (1/255; see ``images_from_codes``); the learner trains on exactly the same mapping.
 """
 
 from __future__ import annotations
@@ -20,14 +20,16 @@ import torch
 from proto.weights import WeightsBlob
 from services.learner.core.networks import Actor, NetConfig, build_actor
 from services.learner.core.sac import deterministic_action, tanh_gaussian_sample
+from services.observation.image_format import INPUT_SCALE
 
 OBSERVATIONS = ("voxel", "depth")
 """`voxel`: the voxel orthographic projection (EquiObs, MEA); `depth`: the rendered depth image (Equi-RSAC)."""
 
 
 def images_from_codes(codes: torch.Tensor) -> torch.Tensor:
-    """uint8 codes (..., C, H, W) -> float32 network input in [0, 1]."""
-    return codes.to(torch.float32).mul_(1.0 / 255.0)
+    """uint8 codes (..., C, H, W) -> float32 network input in [0, 1]: ``image_format.decode`` done by
+    torch (on the codes' device), bit for bit."""
+    return codes.to(torch.float32).mul_(INPUT_SCALE)
 
 
 @dataclass(frozen=True)
