@@ -21,7 +21,6 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 from rich.console import Console
@@ -30,186 +29,55 @@ from rich.table import Table
 
 from proto.control import EvalReport, Heartbeat
 from proto.topics import EPISODES_RAW, EVAL_REPORTS, STATUS
-from services.cli import available
 from services.common import config, logs
+from services.common.bus.base import Bus
+from services.common.bus.inproc import Hub, InProcBus
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 from services.common.mcap_io import McapRecorder
 from services.common.metrics import ServiceMetrics
-from services.common.runtime import Shutdown, die_with_parent
+from services.common.runtime import Shutdown, die_with_parent, stopped_by
+from services.plan import ChildSpec, child_specs
+from services.run_config import PRESETS, RunConfig, resumed_config
 
 log = logging.getLogger(__name__)
 
-SERVICE_ORDER = ("learner", "augmenter", "evaluator", "actor")
-SERVICE_MODULES = {s: f"services.{s}.main" for s in SERVICE_ORDER}
+
+class ServiceThread(threading.Thread):
+    """A service running in the launcher's process (``--in-process``), with a process's ``exitcode``
+    (None while it runs; its return value, or 1 if it raised) so supervision treats both alike."""
+
+    def __init__(self, spec: ChildSpec, bus_factory, parent: Shutdown) -> None:
+        super().__init__(name=spec.instance, daemon=True)
+        self.spec, self.bus_factory, self.parent = spec, bus_factory, parent
+        self.exitcode: int | None = None
+
+    def run(self) -> None:
+        module_name, _, func = self.spec.entry.partition(":")
+        try:
+            with stopped_by(self.parent):  # the service's own Shutdown follows the launcher's
+                fn = getattr(importlib.import_module(module_name), func)
+                code = fn(self.spec.config, bus_factory=self.bus_factory)
+            self.exitcode = int(code or 0)
+        except BaseException:  # noqa: BLE001 - a failed service is reported like a dead process
+            log.exception("service failed", extra={"child": self.spec.instance})
+            self.exitcode = 1
+
+    def kill(self) -> None:
+        """Threads cannot be killed; a service that ignores its shutdown is left to the process exit."""
 
 
-VARIANTS = ("mea", "equiobs", "equirsac")
-MEA_ON = ("", "demos", "successes", "all")
-CPU_LEARNER_PRESETS = ("cpu-small", "cpu-small-state")
-"""Learner presets for two CPU cores: MEA on online successes too, 64 rotated copies of successes."""
-
-
-@dataclass(frozen=True)
-class RunConfig:
-    """Run the full training stack locally."""
-
-    task: str = "block_pull"
-    """Task: block_pull, block_pick or drawer_open."""
-    variant: str = "mea"
-    """What the paper compares: equirsac (rendered depth image, isometric x4), equiobs (voxel
-    projection, isometric x4), mea (voxel projection, isometric x4 + MEA x6 on the demos, and with the
-    cpu-small learner on online successes too: see mea_on)."""
-    mea_on: str = ""
-    """mea variant only: which episodes get MEA (demos: the paper; successes: the demos and every online
-    success; all). Empty: successes with the cpu-small learner preset, demos with the others."""
-    env_steps: int = 40_000
-    """Env-step budget (the paper: 40K, demos included); the run stops after the evaluation at the
-    budget. 0: run until Ctrl-C."""
-    learner_preset: str = "cpu-small"
-    """Learner preset: cpu-small (two CPU cores), cpu-small-state (the same with a critic on the
-    simulator's state), paper (a GPU workstation), smoke (tests)."""
-    seed: int = 0
-    """Run seed: actors' training seeds, augmentation, networks (evaluation seeds are fixed)."""
-    eval_every: int = 1000
-    """Evaluate the newest weights every this many env steps (Equi-RSAC: 250-500; raise it on CPU)."""
-    eval_episodes: int = 20
-    """Evaluation episodes per evaluation (held-out seeds from 1e9, the same every time; deterministic
-    policy)."""
-    final_eval_episodes: int = 50
-    """Episodes of the evaluation at the env-step budget (the same held-out seed sequence, its first
-    final_eval_episodes seeds)."""
-    record: bool = True
-    """Record every raw episode to RUN_DIR/episodes/raw-<n>.mcap."""
-    follow_gate: bool = True
-    """Actors wait for the learner's replay gate (off: actors run flat out; for benchmarks)."""
-    resume: Path | None = None
-    """Continue the run in this directory (its saved config; learner checkpoint; no new demos)."""
-    resumes: int = 0
-    """How many times the run was resumed (set by --resume; moves the actors' seed streams on)."""
-    actors: int = 1
-    """Number of actor processes."""
-    demos: int = 2
-    """Scripted demonstrations pre-filled before training."""
-    run_dir: Path | None = None
-    """Run directory (config, checkpoints, eval history, recordings); default runs/<time>-<task>-<variant>."""
-    listen: str = "tcp/127.0.0.1:7447"
-    """Endpoint of the embedded Zenoh router; services connect to it."""
-    namespace: str = "default"
-    """Key namespace of this run (separates runs sharing a Zenoh network)."""
-    metrics_port: int = 9100
-    """Launcher /metrics port (router traffic, services alive); services use their own defaults
-    (README). 0 disables every /metrics."""
-    duration_seconds: float = 0.0
-    """Stop after this many seconds (0: run until Ctrl-C / SIGTERM)."""
-    stop_grace_seconds: float = 30.0
-    """How long children get to exit after SIGTERM before SIGKILL (the learner writes its final
-    checkpoint then; others exit within a second or two)."""
-    stop_on_failure: bool = True
-    """If a service exits unexpectedly, stop the whole stack (otherwise keep running without it)."""
-    services: tuple[str, ...] = SERVICE_ORDER
-    """Services to start (those not in this build are skipped, and listed)."""
-    extra_services: tuple[str, ...] = ()
-    """Additional `module:function` entries to start as services (plugins; used by tests)."""
-    log_format: str = "text"
-    """Log format of the launcher and its services: json or text."""
-    final_eval_seconds: float = 900.0
-    """At the budget, how long to wait for the evaluation of the last weights (final_eval_episodes
-    episodes) before stopping."""
-
-    success_rotations: int | None = None
-    """Rotated copies of each demonstration and online success (every variant; other episodes get
-    4). None: the learner preset's default (cpu-small: 64, the paper: 4 like every episode)."""
-
-    def resolved_success_rotations(self) -> int:
-        """``success_rotations``, else the learner preset's default: the CPU recipe clones its few
-        successes, and BC of 2 Block Pull demos reached 0.23-0.33 with 64 rotated copies against
-        0.05-0.10 with 4 (30 held-out seeds, 3000 updates)."""
-        if self.success_rotations is not None:
-            return self.success_rotations
-        return 64 if self.learner_preset in CPU_LEARNER_PRESETS else 0
-
-    def resolved_mea_on(self) -> str:
-        """What the mea variant runs MEA on: ``mea_on``, else the learner preset's default (the CPU
-        recipe adds online successes: beyond the two demos, they are the only other layouts)."""
-        return self.mea_on or ("successes" if self.learner_preset in CPU_LEARNER_PRESETS else "demos")
-
-    def __post_init__(self) -> None:
-        if self.actors < 0:
-            raise ValueError("actors must be >= 0")
-        if self.success_rotations is not None and self.success_rotations < 0:
-            raise ValueError("success_rotations must be >= 0")
-        if self.variant not in VARIANTS:
-            raise ValueError(f"variant must be one of {VARIANTS}, not {self.variant!r}")
-        if self.mea_on not in MEA_ON:
-            raise ValueError(f"mea_on must be one of {MEA_ON[1:]}, not {self.mea_on!r}")
-        if self.mea_on and self.variant != "mea":
-            raise ValueError("--mea-on applies to --variant mea only")
-        if self.env_steps < 0 or min(self.eval_every, self.eval_episodes, self.final_eval_episodes) < 1:
-            raise ValueError("env_steps must be >= 0, eval_every, eval_episodes and final_eval_episodes >= 1")
-        unknown = set(self.services) - set(SERVICE_ORDER)
-        if unknown:
-            raise ValueError(f"unknown services {sorted(unknown)}; choose from {SERVICE_ORDER}")
-
-
-PRESETS = {"default": RunConfig()}
-
-
-@dataclass(frozen=True)
-class ChildSpec:
-    service: str
-    instance: str
-    entry: str  # "module:function", called with argv
-    argv: tuple[str, ...]
-
-
-def _common_args(cfg: RunConfig, instance: str, metrics_port: int | None) -> list[str]:
-    args = [
-        "--service.instance-id",
-        instance,
-        "--service.zenoh.connect",
-        cfg.listen,
-        "--service.zenoh.namespace",
-        cfg.namespace,
-        "--service.log-format",
-        cfg.log_format,
-    ]
-    if metrics_port is not None:
-        args += ["--service.metrics-port", str(metrics_port)]
-    return args
-
-
-def child_specs(cfg: RunConfig, run_dir: Path) -> tuple[list[ChildSpec], list[str]]:
-    """Children to start, and the names of requested services missing from this build."""
-    specs, missing = [], []
-    no_metrics = 0 if cfg.metrics_port == 0 else None
-    for service in SERVICE_ORDER:
-        if service not in cfg.services:
-            continue
-        if not available(service):
-            missing.append(service)
-            continue
-        module = importlib.import_module(SERVICE_MODULES[service])
-        count = cfg.actors if service == "actor" else 1
-        for i in range(count):
-            instance = f"{service}-{i}"
-            argv = _common_args(cfg, instance, no_metrics) + list(module.launch_args(cfg, run_dir, i))
-            specs.append(ChildSpec(service, instance, f"{SERVICE_MODULES[service]}:main", tuple(argv)))
-    for i, entry in enumerate(cfg.extra_services):
-        instance = f"extra-{i}"
-        specs.append(ChildSpec("test", instance, entry, tuple(_common_args(cfg, instance, no_metrics))))
-    return specs, missing
-
-
-def _child_main(entry: str, argv: list[str]) -> None:
+def _child_main(spec: ChildSpec) -> None:
     die_with_parent()
-    module_name, _, func = entry.partition(":")
+    module_name, _, func = spec.entry.partition(":")
     fn = getattr(importlib.import_module(module_name), func or "main")
-    sys.exit(fn(argv) or 0)
+    sys.exit(fn(spec.config if spec.config is not None else list(spec.argv)) or 0)
 
 
-def stop_children(procs: dict[str, mp.process.BaseProcess], grace: float) -> None:
+def stop_children(procs: dict, grace: float) -> None:
+    """SIGTERM each child process (service threads follow the launcher's Shutdown instead), wait up
+    to ``grace`` seconds, then kill what is left."""
     for p in procs.values():
-        if p.is_alive() and p.pid:
+        if p.is_alive() and getattr(p, "pid", None):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(p.pid, signal.SIGTERM)
     deadline = time.monotonic() + grace
@@ -229,19 +97,70 @@ class StatusBoard:
     KEY_COUNTERS = 4
     RATE_WINDOW = 120.0
 
-    def __init__(self, specs: list[ChildSpec], budget: int = 0) -> None:
+    def __init__(self, specs: list[ChildSpec], budget: int = 0, bus: Bus | None = None) -> None:
         self.expected = [(s.service, s.instance) for s in specs]
         self.beats: dict[tuple[str, str], Heartbeat] = {}
         self.exits: dict[str, int] = {}
         self.budget = budget
         self.report: EvalReport | None = None
+        self.reports = 0
         self._steps: list[tuple[float, float]] = []  # (time, env steps) for the rate
         self.started = time.time()
+        self._subs = (
+            (bus.subscribe(STATUS, capacity=1024), bus.subscribe(EVAL_REPORTS, capacity=256)) if bus else None
+        )
+
+    def take(self, settle: float = 0.0) -> None:
+        """Take the heartbeats and reports received so far (waiting ``settle`` s for stragglers)."""
+        if self._subs is None:
+            return
+        if settle:
+            time.sleep(settle)
+        beats, reports = self._subs
+        for d in beats.drain():
+            self.update(d.message)
+        for d in reports.drain():
+            self.add_report(d.message)
+
+    def close(self) -> None:
+        for sub in self._subs or ():
+            sub.close()
+
+    def summary(self, episodes_recorded: int | None = None) -> dict:
+        """What the run did, from each instance's last heartbeat: counters per instance, evaluations,
+        the newest report, and the raw episodes recorded (None: not recorded)."""
+        return {
+            "instances": {
+                inst: {
+                    "service": svc,
+                    "exitcode": self.exits.get(inst),
+                    "counters": dict(self.beats[(svc, inst)].counters) if (svc, inst) in self.beats else {},
+                }
+                for svc, inst in self.expected
+            },  # fmt: skip
+            "evaluations": self.reports,
+            "last_report": None
+            if self.report is None
+            else {
+                "env_steps": self.report.env_steps,
+                "success_rate": self.report.success_rate,
+                "policy_version": self.report.policy_version,
+            },  # fmt: skip
+            "episodes_recorded": episodes_recorded,
+            "elapsed_seconds": round(time.time() - self.started, 1),
+        }
+
+    def save_summary(self, path: Path, episodes_recorded: int | None = None) -> None:
+        try:
+            path.write_text(json.dumps(self.summary(episodes_recorded), indent=2, sort_keys=True) + "\n")
+        except OSError as exc:
+            log.warning("run summary not written", extra={"path": str(path), "error": str(exc)})
 
     def update(self, hb: Heartbeat) -> None:
         self.beats[(hb.service, hb.instance_id)] = hb
 
     def add_report(self, r: EvalReport) -> None:
+        self.reports += 1
         if self.report is None or r.policy_version >= self.report.policy_version:
             self.report = r
 
@@ -320,8 +239,9 @@ class StatusBoard:
 class EpisodeRecorder:
     """Writes every raw episode the router sees to an MCAP file, in a thread of the launcher."""
 
-    def __init__(self, router: ZenohBus, path: Path, metadata: dict[str, str]) -> None:
+    def __init__(self, router: Bus, path: Path, metadata: dict[str, str]) -> None:
         self.sub = router.subscribe(EPISODES_RAW, capacity=256)
+        self.written = 0
         self.recorder = McapRecorder(path, metadata=metadata, compression="zstd")
         self._stop = False
         self.thread = threading.Thread(target=self._loop, name="recorder", daemon=True)
@@ -333,6 +253,7 @@ class EpisodeRecorder:
             if d is not None:
                 try:
                     self.recorder.write(d.message, topic=d.key)
+                    self.written += 1
                 except Exception:  # noqa: BLE001 - a recording problem must not stop training
                     log.exception("recording an episode failed")
 
@@ -342,10 +263,11 @@ class EpisodeRecorder:
         self.thread.join(timeout=5.0)
         for d in self.sub.drain():  # what was already received is still written
             self.recorder.write(d.message, topic=d.key)
+            self.written += 1
         self.recorder.close()
 
 
-def _launcher_metrics(cfg: RunConfig, router: ZenohBus) -> ServiceMetrics:
+def _launcher_metrics(cfg: RunConfig, router: Bus) -> ServiceMetrics:
     metrics = ServiceMetrics("launcher", "launcher")
     metrics.watch_bus(router)
     if cfg.metrics_port:
@@ -360,7 +282,7 @@ def _supervise(
     cfg: RunConfig,
     procs: dict,
     board: StatusBoard,
-    router: ZenohBus,
+    router: Bus,
     metrics: ServiceMetrics,
     shutdown: Shutdown,
 ) -> bool:
@@ -370,8 +292,6 @@ def _supervise(
     )
     exited = metrics.counter("mea_launcher_service_exits", "Service processes that exited before shutdown.")
     watch = router.watch_alive()
-    beats = router.subscribe(STATUS, capacity=1024)
-    reports = router.subscribe(EVAL_REPORTS, capacity=256)
     budget_reached_at: float | None = None
     started = time.time()
     console = Console()
@@ -385,10 +305,7 @@ def _supervise(
         live.start()
     try:
         while not shutdown.is_set():
-            for d in beats.drain():
-                board.update(d.message)
-            for d in reports.drain():
-                board.add_report(d.message)
+            board.take()
             for name, p in procs.items():
                 if p.exitcode is not None and name not in board.exits:
                     board.exits[name] = p.exitcode
@@ -438,30 +355,51 @@ def render_curves(run_dir: Path) -> None:
         log.warning("learning curves not rendered", extra={"error": str(exc)[:300]})
 
 
-_MACHINE_FIELDS = ("listen", "metrics_port", "duration_seconds", "stop_grace_seconds", "log_format",
-                   "final_eval_seconds")  # fmt: skip
-"""Fields a resumed run takes from the command line rather than from the run's saved config."""
+def _router(cfg: RunConfig) -> Bus:
+    """The launcher's own bus: the embedded Zenoh router, or the hub of the in-process bus."""
+    if cfg.in_process:
+        return InProcBus(Hub(), namespace=cfg.namespace)
+    return ZenohBus(ZenohConfig(mode="router", listen=(cfg.listen,), namespace=cfg.namespace))
 
 
-def resumed_config(cfg: RunConfig) -> RunConfig:
-    """``--resume RUN_DIR``: the run's saved config, with this machine's settings, resumes + 1."""
-    path = Path(cfg.resume) / "config.json"
-    try:
-        saved = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise SystemExit(f"mea run: cannot resume from {path}: {exc}") from None
-    known = {f.name: f for f in dataclasses.fields(RunConfig)}
-    values = {k: v for k, v in saved.items() if k in known and k not in _MACHINE_FIELDS}
-    for k in ("services", "extra_services"):
-        if k in values:
-            values[k] = tuple(values[k])
-    values.update(run_dir=Path(cfg.resume), resume=Path(cfg.resume), resumes=int(saved.get("resumes", 0)) + 1)
-    values.update({k: getattr(cfg, k) for k in _MACHINE_FIELDS})
-    return RunConfig(**values)
+def _start(cfg: RunConfig, specs: list[ChildSpec], router: Bus, shutdown: Shutdown) -> dict:
+    """Start every instance: a spawned process over Zenoh, or a thread over the in-process bus."""
+    procs: dict = {}
+    if cfg.in_process:
+        hub = router.hub  # type: ignore[attr-defined]
+
+        def bus_factory(c):
+            return InProcBus(hub, namespace=c.zenoh.namespace)
+
+        for s in specs:
+            procs[s.instance] = ServiceThread(s, bus_factory, shutdown)
+            procs[s.instance].start()
+        return procs
+    ctx = mp.get_context("spawn")
+    for s in specs:
+        p = ctx.Process(target=_child_main, args=(s,), name=s.instance, daemon=False)
+        p.start()
+        procs[s.instance] = p
+    return procs
+
+
+def _save_plan(specs: list[ChildSpec], run_dir: Path) -> None:
+    """Each service's resolved config beside the run's: RUN_DIR/services/<instance>.json."""
+    for s in specs:
+        if s.config is not None:
+            config.save(s.config, run_dir / "services" / f"{s.instance}.json")
 
 
 def run(cfg: RunConfig) -> int:
-    logs.setup("launcher", "launcher", cfg.log_format, "INFO")
+    if cfg.in_process:
+        logs.setup_in_process(cfg.log_format, "INFO")
+        if cfg.extra_services:
+            print(
+                "mea run: --extra-services start their own processes; not with --in-process", file=sys.stderr
+            )
+            return 2
+    else:
+        logs.setup("launcher", "launcher", cfg.log_format, "INFO")
     if cfg.resume is not None:
         cfg = resumed_config(cfg)
         log.info("resuming", extra={"run_dir": str(cfg.run_dir), "resumes": cfg.resumes})
@@ -473,8 +411,9 @@ def run(cfg: RunConfig) -> int:
     specs, missing = child_specs(cfg, run_dir)
     if missing:
         log.warning("services not in this build are skipped", extra={"missing": ",".join(missing)})
+    _save_plan(specs, run_dir)
     try:
-        router = ZenohBus(ZenohConfig(mode="router", listen=(cfg.listen,), namespace=cfg.namespace))
+        router = _router(cfg)
     except Exception as exc:  # noqa: BLE001 - zenoh raises ZError; turn it into a clear message
         print(f"mea run: cannot start the Zenoh router on {cfg.listen}: {exc}", file=sys.stderr)
         return 2
@@ -483,24 +422,25 @@ def run(cfg: RunConfig) -> int:
     if cfg.record:
         meta = {"task": cfg.task, "variant": cfg.variant, "seed": str(cfg.seed), "resumes": str(cfg.resumes)}
         recorder = EpisodeRecorder(router, run_dir / "episodes" / f"raw-{cfg.resumes}.mcap", meta)
-    ctx = mp.get_context("spawn")
-    procs: dict[str, mp.process.BaseProcess] = {}
+    board = StatusBoard(specs, budget=cfg.env_steps, bus=router)
+    procs: dict = {}
     failed = False
     try:
-        for s in specs:
-            p = ctx.Process(target=_child_main, args=(s.entry, list(s.argv)), name=s.instance, daemon=False)
-            p.start()
-            procs[s.instance] = p
-        log.info("started", extra={"run_dir": str(run_dir), "children": len(procs), "listen": cfg.listen})
-        board = StatusBoard(specs, budget=cfg.env_steps)
+        procs = _start(cfg, specs, router, shutdown)
+        topology = "in-process" if cfg.in_process else cfg.listen
+        log.info("started", extra={"run_dir": str(run_dir), "children": len(procs), "listen": topology})
         failed = _supervise(cfg, procs, board, router, metrics, shutdown)
         log.info(
             "stopping", extra={"reason": shutdown.reason, "progress": board.progress_line(board.started)}
         )
     finally:
+        shutdown.set("stopping")
         stop_children(procs, cfg.stop_grace_seconds)
+        board.take(settle=0.2)  # the services' last heartbeats
+        board.save_summary(run_dir / "summary.json", recorder.written if recorder else None)
         if recorder is not None:
             recorder.close()
+        board.close()
         router.close()
         render_curves(run_dir)
         metrics.close()

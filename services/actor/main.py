@@ -25,9 +25,8 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from pathlib import Path
 
-from proto.seeds import ACTOR_SEED_STRIDE, actor_seed_base
+from proto.seeds import ACTOR_SEED_STRIDE
 from proto.topics import EPISODES_RAW
 from services.actor.config import PRESETS, ActorConfig
 from services.actor.episodes import EpisodeBuilder
@@ -154,21 +153,4 @@ def main(argv: Sequence[str]) -> int:
     return run(config.parse(ActorConfig, PRESETS, argv, "mea actor", ActorConfig.__doc__ or ""))
 
 
-def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
-    """Arguments `mea run` passes to actor ``index``: the learned policy when the run has a learner
-    (random otherwise), demonstrations from actor 0 only (not again on resume), the rendered depth
-    image for the equirsac variant, and a seed base that moves on with every resume so that no
-    training seed repeats (run seed s, resume r: s * 1e8 + r * 1e5; evaluation seeds are >= 1e9)."""
-    policy = "learned" if "learner" in run_cfg.services else "random"
-    args = ["--task", run_cfg.task, "--index", str(index), "--policy", policy,
-            "--seed-base", str(actor_seed_base(run_cfg.seed, run_cfg.resumes))]  # fmt: skip
-    if index == 0 and run_cfg.demos and run_cfg.resume is None:
-        args += ["--demos", str(run_cfg.demos)]
-    if run_cfg.variant == "equirsac":
-        args += ["--depth-image"]
-    if not run_cfg.follow_gate:
-        args += ["--no-follow-gate"]
-    return args
-
-
-__all__ = ["launch_args", "main", "run"]
+__all__ = ["main", "run"]

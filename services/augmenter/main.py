@@ -50,7 +50,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 
 from proto.episode import Episode
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW
@@ -191,18 +190,4 @@ def main(argv: Sequence[str]) -> int:
     return run(config.parse(AugmenterConfig, PRESETS, argv, "mea augmenter", AugmenterConfig.__doc__ or ""))
 
 
-def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
-    """Arguments `mea run` passes to augmenter ``index``: what the run's variant augments.
-
-    mea: voxel projection, isometric x4 + MEA x6 on what ``RunConfig.resolved_mea_on`` says (demos in the paper);
-    equiobs: voxel projection, isometric x4; equirsac: the rendered depth image, isometric x4."""
-    args = ["--augment.seed", str(run_cfg.seed)]
-    args += ["--augment.success-isometric-copies", str(run_cfg.resolved_success_rotations())]
-    if run_cfg.variant == "mea":
-        return args + ["--augment.mea-on", run_cfg.resolved_mea_on()]
-    if run_cfg.variant == "equiobs":
-        return args + ["--augment.mea-on", "none"]
-    return args + ["--augment.mea-on", "none", "--augment.observation", "depth"]
-
-
-__all__ = ["Augmenter", "launch_args", "main", "run"]
+__all__ = ["Augmenter", "main", "run"]

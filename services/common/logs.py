@@ -47,7 +47,34 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(out)
 
 
+_shared = False
+"""Set by ``setup_in_process``: one handler for every service of the process; ``setup`` keeps it."""
+
+
+def setup_in_process(fmt: str = "json", level: str = "INFO") -> None:
+    """Logging for all services in one process (``mea run --in-process``): each line names the
+    thread that wrote it (a service's main thread is named after its instance)."""
+    global _shared
+    setup("process", "%(threadName)s", fmt, level)
+    if fmt == "json":
+        logging.getLogger().handlers[0].setFormatter(ThreadJsonFormatter())
+    _shared = True
+
+
+class ThreadJsonFormatter(JsonFormatter):
+    """JSON lines whose ``instance`` is the writing thread's name (the in-process topology)."""
+
+    def __init__(self) -> None:
+        super().__init__("process", "")
+
+    def format(self, record: logging.LogRecord) -> str:
+        self.instance = record.threadName or ""
+        return super().format(record)
+
+
 def setup(service: str, instance: str, fmt: str = "json", level: str = "INFO") -> None:
+    if _shared:
+        return
     handler = logging.StreamHandler(sys.stderr)
     if fmt == "json":
         handler.setFormatter(JsonFormatter(service, instance))

@@ -3,13 +3,14 @@ service context (bus, liveliness token, /metrics, heartbeats) wired around a ser
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import logging
 import os
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 from proto.control import Heartbeat
@@ -24,15 +25,42 @@ log = logging.getLogger(__name__)
 PR_SET_PDEATHSIG = 1
 
 
+_scope = threading.local()
+
+
+@contextlib.contextmanager
+def stopped_by(parent: Shutdown) -> Iterator[None]:
+    """Every ``Shutdown`` created in this thread inside the block is set when ``parent`` is: the
+    in-process topology stops its service threads with the launcher's one Shutdown."""
+    previous = getattr(_scope, "parent", None)
+    _scope.parent = parent
+    try:
+        yield
+    finally:
+        _scope.parent = previous
+
+
 class Shutdown:
-    """Set on SIGTERM/SIGINT (or by the owner); loops poll ``is_set`` or ``wait``."""
+    """Set on SIGTERM/SIGINT (or by the owner, or by the parent given by ``stopped_by``); loops poll
+    ``is_set`` or ``wait``."""
 
     def __init__(self, install_signals: bool = True) -> None:
         self._event = threading.Event()
+        self._children: list[Shutdown] = []
+        self._lock = threading.Lock()
         self.reason = ""
         if install_signals and threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGTERM, self._on_signal)
             signal.signal(signal.SIGINT, self._on_signal)
+        parent = getattr(_scope, "parent", None)
+        if parent is not None:
+            parent._adopt(self)
+
+    def _adopt(self, child: Shutdown) -> None:
+        with self._lock:
+            self._children.append(child)
+        if self.is_set():
+            child.set(self.reason)
 
     def _on_signal(self, signum: int, _frame: object) -> None:
         self.set(signal.Signals(signum).name)
@@ -41,6 +69,10 @@ class Shutdown:
         if not self._event.is_set():
             self.reason = reason
             self._event.set()
+        with self._lock:
+            children = list(self._children)
+        for child in children:
+            child.set(reason)
 
     def is_set(self) -> bool:
         return self._event.is_set()

@@ -4,8 +4,8 @@ Why a service of its own: evaluation must not touch the training envs (pitfall P
 env is the training env re-seeded, and its resets shift the training episodes' layout), must use
 the deterministic policy (tanh of the mean), and must compare every version on the same episodes.
 
-This module is the transport shell around ``config`` (the flags; `mea run` passes its own through
-``LAUNCH_FIELDS``), ``core.schedule`` (when a version is due, on which held-out seeds),
+This module is the transport shell around ``config`` (the settings; `mea run` derives them in
+``services.plan``), ``core.schedule`` (when a version is due, on which held-out seeds),
 ``evaluation`` (the episodes, the report and the history record), ``core.metrics`` and ``history``
 (``RUN_DIR/eval/history.jsonl``). Each cycle (about 5 a second) it tracks the learner's latest
 ``ReplayGate`` (its ``inserted_steps`` are the training env steps) and, only once the schedule says
@@ -32,7 +32,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 
 from proto.topics import EVAL_REPORTS, REPLAY_GATE
 from proto.weights import WeightsBlob
@@ -296,27 +295,4 @@ def main(argv: Sequence[str]) -> int:
     return run(config.parse(EvaluatorConfig, PRESETS, argv, "mea evaluator", EvaluatorConfig.__doc__ or ""))
 
 
-LAUNCH_FIELDS = (
-    ("eval_every", "--every-env-steps"),
-    ("eval_episodes", "--episodes"),
-    ("env_steps", "--final-env-steps"),
-    ("final_eval_episodes", "--final-episodes"),
-)
-"""RunConfig fields passed on when the launcher's config has them: (field, evaluator flag)."""
-
-
-def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
-    """Arguments `mea run` passes to the evaluator: the run's task and its run dir (for the history);
-    then, where the run config has them, its evaluation cadence and episodes, its env-step budget
-    and the episodes of the evaluation there, and the rendered depth image for the equirsac variant."""
-    args = ["--task", run_cfg.task, "--run-dir", str(run_dir)]
-    for name, flag in LAUNCH_FIELDS:
-        value = getattr(run_cfg, name, None)
-        if value is not None:
-            args += [flag, str(value)]
-    if getattr(run_cfg, "variant", None) == "equirsac":
-        args += ["--depth-image"]
-    return args
-
-
-__all__ = ["Evaluator", "launch_args", "main", "run"]
+__all__ = ["Evaluator", "main", "run"]

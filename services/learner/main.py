@@ -236,17 +236,4 @@ def main(argv: Sequence[str]) -> int:
     return run(config.parse(LearnerConfig, PRESETS, argv, "mea learner", LearnerConfig.__doc__ or ""))
 
 
-def launch_args(run_cfg, run_dir: Path, index: int) -> list[str]:
-    """Arguments `mea run` passes to the learner: its preset, Equi-RSAC's group per task (C4 for Block
-    Pull, D4 for the others), the variant's observation, the run's env-step budget, one torch thread
-    (it shares the cores with actors and augmenter; two OpenMP threads on a busy 2-core machine wait
-    on each other), state under run_dir/learner, ``--resume`` when the run is resumed."""
-    group = "c4" if run_cfg.task == "block_pull" else "d4"
-    args = ["--preset", run_cfg.learner_preset, "--net.group", group, "--threads", "1",
-            "--observation", "depth" if run_cfg.variant == "equirsac" else "voxel",
-            "--max-env-steps", str(run_cfg.env_steps), "--seed", str(run_cfg.seed),
-            "--run-dir", str(run_dir / "learner")]  # fmt: skip
-    return args + (["--resume"] if run_cfg.resume is not None else [])
-
-
-__all__ = ["Learner", "launch_args", "main", "run"]
+__all__ = ["Learner", "main", "run"]

@@ -18,7 +18,7 @@ from services.common.config import ServiceConfig
 from services.common.weights import WeightsServer
 from services.evaluator.config import EvaluatorConfig
 from services.evaluator.history import read_history
-from services.evaluator.main import launch_args, run
+from services.evaluator.main import run
 
 pytestmark = pytest.mark.integration
 INSTANCE = "evaluator-t"
@@ -145,30 +145,18 @@ def test_evaluator_reports_versions_on_held_out_seeds_at_the_env_step_cadence(tm
     assert c["learner_env_steps"] == 1250
 
 
-def test_launch_args_pass_the_task_the_run_dir_and_the_runs_eval_settings(tmp_path):
-    class MinimalRunCfg:
-        task = "drawer_open"
+def test_the_run_plan_passes_the_task_the_run_dir_and_the_runs_eval_settings(tmp_path):
+    from services.plan import config_for
+    from services.run_config import RunConfig
 
-    assert launch_args(MinimalRunCfg(), tmp_path, 0) == ["--task", "drawer_open", "--run-dir", str(tmp_path)]
-    from services.launcher import RunConfig
-
-    args = launch_args(RunConfig(task="block_pick", variant="equirsac", eval_every=500, eval_episodes=4,
-                                 final_eval_episodes=7, env_steps=2000), tmp_path, 0)  # fmt: skip
-    assert args == ["--task", "block_pick", "--run-dir", str(tmp_path), "--every-env-steps", "500",
-                    "--episodes", "4", "--final-env-steps", "2000", "--final-episodes", "7",
-                    "--depth-image"]  # fmt: skip
-    from services.common import config
-    from services.evaluator.config import PRESETS
-
-    cfg = config.parse(EvaluatorConfig, PRESETS, args, "mea evaluator", "")
+    cfg = config_for(RunConfig(task="block_pick", variant="equirsac", eval_every=500, eval_episodes=4,
+                               final_eval_episodes=7, env_steps=2000), tmp_path, "evaluator", 0)  # fmt: skip
     assert (cfg.task, cfg.run_dir, cfg.every_env_steps, cfg.episodes) == ("block_pick", tmp_path, 500, 4)
     assert cfg.final_env_steps == 2000 and cfg.final_episodes == 7 and cfg.depth_image
     # `mea run`'s defaults reach the evaluator: 20 episodes per evaluation, 50 at the budget
-    defaults = config.parse(
-        EvaluatorConfig, PRESETS, launch_args(RunConfig(), tmp_path, 0), "mea evaluator", ""
-    )
+    defaults = config_for(RunConfig(task="drawer_open"), tmp_path, "evaluator", 0)
     assert (defaults.episodes, defaults.final_episodes, defaults.final_env_steps) == (20, 50, 40_000)
-    assert defaults.every_env_steps == 1000
+    assert defaults.every_env_steps == 1000 and defaults.task == "drawer_open" and not defaults.depth_image
     with pytest.raises(ValueError):
         EvaluatorConfig(task="stack")
     with pytest.raises(ValueError):

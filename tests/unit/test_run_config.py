@@ -8,36 +8,48 @@ import json
 import pytest
 
 from proto.control import EvalReport, Heartbeat
-from services.actor.main import launch_args as actor_args
-from services.augmenter.main import launch_args as augmenter_args
+from proto.seeds import EVAL_SEED_BASE
 from services.common import config
-from services.launcher import CPU_LEARNER_PRESETS, ChildSpec, RunConfig, StatusBoard, resumed_config
+from services.launcher import StatusBoard
 from services.learner.config import PRESETS as LEARNER_PRESETS
-from services.learner.main import launch_args as learner_args
+from services.plan import ChildSpec, child_specs, config_for
+from services.run_config import CPU_LEARNER_PRESETS, RunConfig, resumed_config
+
+
+def augmenter_cfg(run: RunConfig, tmp_path):
+    return config_for(run, tmp_path, "augmenter", 0)
+
+
+def actor_cfg(run: RunConfig, tmp_path, index: int = 0):
+    return config_for(run, tmp_path, "actor", index)
+
+
+def learner_cfg(run: RunConfig, tmp_path):
+    return config_for(run, tmp_path, "learner", 0)
 
 
 def test_variants_configure_actor_augmenter_and_learner(tmp_path):
     mea = RunConfig(variant="mea")
-    assert "--augment.mea-on" in augmenter_args(mea, tmp_path, 0)
-    assert augmenter_args(mea, tmp_path, 0)[-1] == "successes"  # the CPU recipe's default
-    assert augmenter_args(RunConfig(variant="mea", learner_preset="paper"), tmp_path, 0)[-1] == "demos"
-    assert augmenter_args(RunConfig(variant="mea", mea_on="demos"), tmp_path, 0)[-1] == "demos"
-    assert augmenter_args(RunConfig(variant="mea", mea_on="all"), tmp_path, 0)[-1] == "all"
-    assert augmenter_args(RunConfig(variant="equiobs"), tmp_path, 0)[-1] == "none"
+    assert augmenter_cfg(mea, tmp_path).augment.mea_on == "successes"  # the CPU recipe's default
+    assert augmenter_cfg(RunConfig(variant="mea", learner_preset="paper"), tmp_path).augment.mea_on == "demos"
+    assert augmenter_cfg(RunConfig(variant="mea", mea_on="demos"), tmp_path).augment.mea_on == "demos"
+    assert augmenter_cfg(RunConfig(variant="mea", mea_on="all"), tmp_path).augment.mea_on == "all"
+    assert augmenter_cfg(RunConfig(variant="equiobs"), tmp_path).augment.mea_on == "none"
     rsac = RunConfig(variant="equirsac")
-    assert augmenter_args(rsac, tmp_path, 0)[-2:] == ["--augment.observation", "depth"]
-    assert "--depth-image" in actor_args(rsac, tmp_path, 0) and "--depth-image" not in actor_args(
-        mea, tmp_path, 0
+    assert augmenter_cfg(rsac, tmp_path).augment.observation == "depth"
+    assert augmenter_cfg(rsac, tmp_path).augment.mea_on == "none"
+    assert augmenter_cfg(mea, tmp_path).augment.observation == "voxel"
+    assert actor_cfg(rsac, tmp_path).depth_image and not actor_cfg(mea, tmp_path).depth_image
+    assert (
+        learner_cfg(rsac, tmp_path).observation == "depth"
+        and learner_cfg(mea, tmp_path).observation == "voxel"
     )
-    ln = learner_args(rsac, tmp_path, 0)
-    assert ln[ln.index("--observation") + 1] == "depth"
-    assert learner_args(RunConfig(task="block_pick"), tmp_path, 0)[3] == "d4"
-    assert learner_args(RunConfig(task="block_pull"), tmp_path, 0)[3] == "c4"
+    assert learner_cfg(RunConfig(task="block_pick"), tmp_path).net.group == "d4"
+    assert learner_cfg(RunConfig(task="block_pull"), tmp_path).net.group == "c4"
     # rotated copies of each success: the CPU recipe's 64 in every variant, the paper's count otherwise
-    for run, count in [(mea, "64"), (rsac, "64"), (RunConfig(learner_preset="paper"), "0"),
-                       (RunConfig(success_rotations=8), "8"), (RunConfig(learner_preset="cpu-small-state"), "64")]:  # fmt: skip
-        args = augmenter_args(run, tmp_path, 0)
-        assert args[args.index("--augment.success-isometric-copies") + 1] == count
+    for run, count in [(mea, 64), (rsac, 64), (RunConfig(learner_preset="paper"), 0),
+                       (RunConfig(success_rotations=8), 8), (RunConfig(learner_preset="cpu-small-state"), 64)]:  # fmt: skip
+        assert augmenter_cfg(run, tmp_path).augment.success_isometric_copies == count
     with pytest.raises(ValueError, match="success_rotations"):
         RunConfig(success_rotations=-1)
     # the launcher's CPU recipes are learner presets, and each gets the CPU defaults
@@ -55,6 +67,39 @@ def test_variants_configure_actor_augmenter_and_learner(tmp_path):
         RunConfig(variant="nope")
 
 
+def test_the_plan_derives_every_service_config_from_the_run_and_its_learner_preset(tmp_path):
+    run = RunConfig(task="drawer_open", learner_preset="cpu-small", seed=2, env_steps=3000, actors=2,
+                    eval_every=500, eval_episodes=7, final_eval_episodes=11, metrics_port=0)  # fmt: skip
+    specs, missing = child_specs(run, tmp_path, available=lambda s: s != "evaluator")
+    assert missing == ["evaluator"]
+    assert [s.instance for s in specs] == ["learner-0", "augmenter-0", "actor-0", "actor-1"]
+    assert all(s.entry.endswith(":run") and s.config.service.instance_id == s.instance for s in specs)
+    assert all(
+        s.config.service.metrics_port == 0 and s.config.service.zenoh.connect == (run.listen,) for s in specs
+    )
+    learner = specs[0].config
+    preset = LEARNER_PRESETS["cpu-small"]
+    # the preset's own fields survive; the run sets only group, observation, budget, seed, threads, dir
+    assert (learner.batch_size, learner.demo_fraction, learner.sac) == (
+        preset.batch_size,
+        preset.demo_fraction,
+        preset.sac,
+    )
+    assert (learner.net.group, learner.max_env_steps, learner.seed, learner.threads) == ("d4", 3000, 2, 1)
+    assert learner.run_dir == tmp_path / "learner" and not learner.resume
+    a0, a1 = specs[2].config, specs[3].config
+    assert (a0.demos, a1.demos) == (run.demos, 0) and (a0.index, a1.index) == (0, 1)
+    assert a0.policy == "learned" and a0.task == "drawer_open" and a0.seed_base == a1.seed_base
+    ev = config_for(run, tmp_path, "evaluator", 0)
+    assert (ev.task, ev.every_env_steps, ev.episodes, ev.final_env_steps, ev.final_episodes) == (
+        "drawer_open", 500, 7, 3000, 11)  # fmt: skip
+    assert ev.run_dir == tmp_path and ev.seed_base == EVAL_SEED_BASE
+    # without a learner, actors act at random
+    assert actor_cfg(RunConfig(services=("actor",)), tmp_path).policy == "random"
+    with pytest.raises(ValueError, match="unknown service"):
+        config_for(run, tmp_path, "nope", 0)
+
+
 def test_resume_reuses_the_saved_settings_with_new_seeds_and_no_demos(tmp_path):
     first = RunConfig(task="drawer_open", variant="equiobs", seed=3, demos=2, env_steps=5000, run_dir=tmp_path,
                       listen="tcp/127.0.0.1:1111")  # fmt: skip
@@ -64,10 +109,10 @@ def test_resume_reuses_the_saved_settings_with_new_seeds_and_no_demos(tmp_path):
     assert (cfg.task, cfg.variant, cfg.seed, cfg.env_steps) == ("drawer_open", "equiobs", 3, 5000)
     assert cfg.listen == "tcp/127.0.0.1:2222" and cfg.duration_seconds == 9.0  # this machine's
     assert cfg.resumes == 1 and cfg.run_dir == tmp_path and cfg.resume == tmp_path
-    args0, args1 = actor_args(first, tmp_path, 0), actor_args(cfg, tmp_path, 0)
-    assert "--demos" in args0 and "--demos" not in args1
-    assert args0[args0.index("--seed-base") + 1] != args1[args1.index("--seed-base") + 1]
-    assert "--resume" in learner_args(cfg, tmp_path, 0) and "--resume" not in learner_args(first, tmp_path, 0)
+    a0, a1 = actor_cfg(first, tmp_path), actor_cfg(cfg, tmp_path)
+    assert a0.demos == 2 and a1.demos == 0
+    assert a0.seed_base != a1.seed_base
+    assert learner_cfg(cfg, tmp_path).resume and not learner_cfg(first, tmp_path).resume
     config.save(cfg, tmp_path / "config.json")
     assert resumed_config(dataclasses.replace(cli)).resumes == 2
     with pytest.raises(SystemExit, match="config.json"):
@@ -75,7 +120,7 @@ def test_resume_reuses_the_saved_settings_with_new_seeds_and_no_demos(tmp_path):
 
 
 def test_evaluation_defaults_20_episodes_every_1000_env_steps_and_50_at_the_budget(tmp_path):
-    from services.launcher import PRESETS
+    from services.run_config import PRESETS
 
     d = RunConfig()
     assert (d.eval_every, d.eval_episodes, d.final_eval_episodes, d.env_steps) == (1000, 20, 50, 40_000)
@@ -106,8 +151,8 @@ def beat(service: str, instance: str, t: float, **counters: float) -> Heartbeat:
 
 def test_progress_line_counts_and_eta():
     specs = [
-        ChildSpec("learner", "learner-0", "x:main", ()),
-        ChildSpec("augmenter", "augmenter-0", "x:main", ()),
+        ChildSpec("learner", "learner-0", "x:run"),
+        ChildSpec("augmenter", "augmenter-0", "x:run"),
     ]
     board = StatusBoard(specs, budget=1000)
     board.update(beat("learner", "learner-0", 1.0, env_steps=100, updates=20, version=4))

@@ -102,3 +102,30 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def test_shutdowns_made_under_stopped_by_follow_the_parent_and_only_downwards():
+    import threading
+
+    from services.common.runtime import Shutdown, stopped_by
+
+    parent = Shutdown(install_signals=False)
+    made: list[Shutdown] = []
+
+    def service() -> None:
+        with stopped_by(parent):
+            made.extend([Shutdown(), Shutdown()])
+        made.append(Shutdown())  # after the block: on its own
+
+    t = threading.Thread(target=service)
+    t.start()
+    t.join()
+    first, second, outside = made
+    first.set("own")  # a service stopping itself stops neither the launcher nor its siblings
+    assert not parent.is_set() and not second.is_set()
+    parent.set("budget")
+    assert second.is_set() and second.reason == "budget" and first.reason == "own"
+    assert not outside.is_set()
+    with stopped_by(parent):  # one made after the parent stopped starts stopped
+        late = Shutdown(install_signals=False)
+    assert late.is_set() and late.reason == "budget"

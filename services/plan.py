@@ -1,0 +1,159 @@
+"""From a run's settings to each service's frozen config: the one place that knows how `mea run`
+configures its services (the launcher starts them with these objects, in processes or threads, and
+saves them under RUN_DIR/services/)."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from proto.seeds import actor_seed_base
+from services.actor.config import ActorConfig
+from services.augmenter.config import AugmenterConfig
+from services.common.bus.zenoh_bus import ZenohConfig
+from services.common.config import ServiceConfig
+from services.evaluator.config import EvaluatorConfig
+from services.learner.config import PRESETS as LEARNER_PRESETS
+from services.run_config import SERVICE_MODULES, SERVICE_ORDER, RunConfig
+from services.variants import network_group, variant
+
+
+@dataclass(frozen=True)
+class ChildSpec:
+    """One service instance to start: ``entry`` ("module:function") is called with ``config`` (a
+    service's frozen config) or, for plugin entries, with ``argv``."""
+
+    service: str
+    instance: str
+    entry: str
+    argv: tuple[str, ...] = ()
+    config: Any = None
+
+
+def service_settings(run: RunConfig, instance: str) -> ServiceConfig:
+    """Identity, transport, metrics and logs of one instance: it joins the run's router; /metrics on
+    the service's default port, or none when the run turns metrics off."""
+    return ServiceConfig(
+        instance_id=instance,
+        zenoh=ZenohConfig(connect=(run.listen,), namespace=run.namespace),
+        metrics_port=0 if run.metrics_port == 0 else -1,
+        log_format=run.log_format,
+    )
+
+
+def actor_config(run: RunConfig, index: int, service: ServiceConfig) -> ActorConfig:
+    """Actor ``index``: the learned policy when the run has a learner (random otherwise),
+    demonstrations from actor 0 only (not again on resume), the depth image where the variant
+    observes it, and a seed base that moves on with every resume (``proto.seeds``)."""
+    return ActorConfig(
+        task=run.task,
+        index=index,
+        policy="learned" if "learner" in run.services else "random",
+        seed_base=actor_seed_base(run.seed, run.resumes),
+        demos=run.demos if index == 0 and run.resume is None else 0,
+        depth_image=variant(run.variant).depth_image,
+        follow_gate=run.follow_gate,
+        service=service,
+    )
+
+
+def augmenter_config(run: RunConfig, service: ServiceConfig) -> AugmenterConfig:
+    """What the variant augments: mea, isometric copies + MEA on what ``RunConfig.resolved_mea_on``
+    says (demos in the paper); equiobs, isometric copies; equirsac, the same on the depth image."""
+    v = variant(run.variant)
+    base = AugmenterConfig().augment
+    augment = dataclasses.replace(
+        base,
+        seed=run.seed,
+        success_isometric_copies=run.resolved_success_rotations(),
+        mea_on=run.resolved_mea_on() if v.mea else "none",
+        observation=v.observation,
+    )
+    return AugmenterConfig(augment=augment, service=service)
+
+
+def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any:
+    """The run's learner preset with the task's group, the variant's observation, the run's budget
+    and seed, one torch thread (it shares the cores with actors and augmenter; two OpenMP threads on
+    a busy 2-core machine wait on each other), state under RUN_DIR/learner, resumed on --resume."""
+    preset = LEARNER_PRESETS[run.learner_preset]
+    return dataclasses.replace(
+        preset,
+        net=dataclasses.replace(preset.net, group=network_group(run.task)),
+        observation=variant(run.variant).observation,
+        threads=1,
+        max_env_steps=run.env_steps,
+        seed=run.seed,
+        run_dir=run_dir / "learner",
+        resume=run.resume is not None,
+        service=service,
+    )
+
+
+def evaluator_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> EvaluatorConfig:
+    """The run's task, cadence and budget; the history under RUN_DIR/eval; the depth image where
+    the variant observes it."""
+    return EvaluatorConfig(
+        task=run.task,
+        run_dir=run_dir,
+        every_env_steps=run.eval_every,
+        episodes=run.eval_episodes,
+        final_env_steps=run.env_steps,
+        final_episodes=run.final_eval_episodes,
+        depth_image=variant(run.variant).depth_image,
+        service=service,
+    )
+
+
+def config_for(run: RunConfig, run_dir: Path, service: str, index: int) -> Any:
+    """The frozen config of instance ``index`` of ``service`` in this run."""
+    settings = service_settings(run, f"{service}-{index}")
+    if service == "actor":
+        return actor_config(run, index, settings)
+    if service == "augmenter":
+        return augmenter_config(run, settings)
+    if service == "learner":
+        return learner_config(run, run_dir, settings)
+    if service == "evaluator":
+        return evaluator_config(run, run_dir, settings)
+    raise ValueError(f"unknown service {service!r}; choose from {SERVICE_ORDER}")
+
+
+def service_available(service: str) -> bool:
+    """Whether this build has ``service``'s shell (a build may ship a subset of the services)."""
+    try:
+        return importlib.util.find_spec(SERVICE_MODULES[service]) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+def child_specs(
+    run: RunConfig, run_dir: Path, available: Callable[[str], bool] = service_available
+) -> tuple[list[ChildSpec], list[str]]:
+    """Instances to start, in start order, and the requested services ``available`` says this build
+    lacks. Plugin entries (``extra_services``) get the command-line form of their settings."""
+    specs, missing = [], []
+    for service in SERVICE_ORDER:
+        if service not in run.services:
+            continue
+        if not available(service):
+            missing.append(service)
+            continue
+        for i in range(run.actors if service == "actor" else 1):
+            cfg = config_for(run, run_dir, service, i)
+            specs.append(ChildSpec(service, f"{service}-{i}", f"{SERVICE_MODULES[service]}:run", config=cfg))
+    for i, entry in enumerate(run.extra_services):
+        instance = f"extra-{i}"
+        specs.append(ChildSpec("test", instance, entry, argv=tuple(plugin_args(run, instance))))
+    return specs, missing
+
+
+def plugin_args(run: RunConfig, instance: str) -> list[str]:
+    """The shared service settings as flags, for plugin services that parse their own argv."""
+    args = ["--service.instance-id", instance, "--service.zenoh.connect", run.listen,
+            "--service.zenoh.namespace", run.namespace, "--service.log-format", run.log_format]  # fmt: skip
+    return args + (["--service.metrics-port", "0"] if run.metrics_port == 0 else [])
