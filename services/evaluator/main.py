@@ -38,7 +38,6 @@ from proto.weights import WeightsBlob
 from services.common import config
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
-from services.common.metrics import ServiceMetrics
 from services.common.replay_gate import GateTracker
 from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.weights import WeightsClient
@@ -47,6 +46,7 @@ from services.evaluator.core.metrics import EvalSummary, run_improvement_timeste
 from services.evaluator.core.schedule import last_evaluated_env_steps
 from services.evaluator.evaluation import EpisodeRunner, Evaluation
 from services.evaluator.history import HISTORY, append_history, read_history
+from services.evaluator.metrics import evaluator_metrics
 from services.tasks import ManipulationEnv, make_env
 
 log = logging.getLogger(__name__)
@@ -54,38 +54,6 @@ log = logging.getLogger(__name__)
 
 class _StopRequestedError(Exception):
     """Raised from inside a rollout when the service is asked to stop."""
-
-
-_SECONDS = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0, 20.0, 30.0, 60.0)
-
-
-def _metrics(m: ServiceMetrics) -> dict:
-    return {
-        "evaluations": m.counter("mea_evaluator_evaluations", "Evaluations finished and reported."),
-        "success_rate": m.gauge("mea_evaluator_success_rate", "Success rate of the last evaluation."),
-        "mean_return": m.gauge("mea_evaluator_mean_return", "Mean return of the last evaluation."),
-        "mean_length": m.gauge("mea_evaluator_mean_length", "Mean episode length (steps), last evaluation."),
-        "grasp_score": m.gauge("mea_evaluator_grasp_score", "Mean grasp score s_g of the last evaluation."),
-        "version": m.gauge(
-            "mea_evaluator_policy_version", "Weights version of the last evaluation (-1: none)."
-        ),
-        "env_steps": m.gauge(
-            "mea_evaluator_env_steps",
-            "Learner env steps when the last evaluated version was pulled (-1: unknown).",
-        ),
-        "improvement": m.gauge(
-            "mea_evaluator_improvement_env_steps",
-            "Improvement timestep so far: env steps from which every evaluation had success > 0 (-1: none).",
-        ),
-        "episode_seconds": m.histogram(
-            "mea_evaluator_episode_seconds", "Wall time of one evaluation episode.", _SECONDS
-        ),
-        "bad_weights": m.counter(
-            "mea_evaluator_bad_weights",
-            "Weights versions skipped, by reason (load: do not fit; observation: no depth image here).",
-            ["reason"],
-        ),
-    }
 
 
 class Evaluator:
@@ -98,7 +66,7 @@ class Evaluator:
         self.gate = gate
         self.weights = weights
         self.env = env or make_env(cfg.task, cfg.env_settings())  # its own env: never a training one
-        self.mx = _metrics(ctx.metrics)
+        self.mx = evaluator_metrics(ctx.metrics)
         self.mx["version"].set(-1)
         self.mx["env_steps"].set(-1)
         self.mx["improvement"].set(-1)
