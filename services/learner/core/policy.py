@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from proto.actions import ACTION_DIM
 from proto.weights import WeightsBlob
 from services.learner.core.networks import Actor, NetConfig, build_actor
 from services.learner.core.sac import deterministic_action, tanh_gaussian_sample
@@ -79,7 +80,7 @@ class PolicyRuntime:
         self.spec: PolicySpec | None = None
         self.version = -1
         self._state = None
-        self._prev = torch.zeros(1, 5)
+        self._prev = torch.zeros(1, ACTION_DIM)
 
     def load(self, blob: WeightsBlob) -> None:
         """Rebuild (if the spec changed) and load the blob's tensors; raises ValueError if they do not fit."""
@@ -104,7 +105,7 @@ class PolicyRuntime:
 
     def reset(self) -> None:
         self._state = None
-        self._prev = torch.zeros(1, 5)
+        self._prev = torch.zeros(1, ACTION_DIM)
 
     @torch.no_grad()
     def act(self, image_codes: np.ndarray) -> np.ndarray:
