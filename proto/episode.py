@@ -25,6 +25,12 @@ OBJECT_SYMMETRY = {"block_pull": 4, "block_pick": 4, "drawer_open": 1, "surgical
 ``object_poses`` means the same body placement modulo 2 pi / n (square blocks 4, a drawer 1)."""
 
 
+def succeeded(terminated) -> bool:
+    """The one definition of a successful episode: its last step terminated (a task ends early only
+    on success; a time limit sets ``truncated`` instead)."""
+    return bool(len(terminated) > 0 and terminated[-1])
+
+
 @dataclass(frozen=True)
 class Augmentation(Message):
     """Where an augmented episode came from and how it was made (enough to regenerate it)."""
@@ -110,6 +116,11 @@ class Episode(Message):
     @property
     def num_steps(self) -> int:
         return int(self.actions.shape[0])
+
+    @property
+    def succeeded(self) -> bool:
+        """Whether the episode succeeded (``succeeded(terminated)``)."""
+        return succeeded(self.terminated)
 
     def validate(self, dims: dict[str, int]) -> None:
         if dims.get("T", 0) < 1:

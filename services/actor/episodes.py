@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from proto.episode import Episode
+from proto.episode import Episode, succeeded
 from services.tasks.env import Observation
 
 
@@ -34,7 +34,7 @@ class EpisodeBuilder:
 
     @property
     def success(self) -> bool:
-        return bool(self.terminated and self.terminated[-1])
+        return succeeded(self.terminated)
 
     def finish(self, episode_id: str) -> Episode:
         if len(self.obs) != len(self.actions) + 1 or not self.actions:

@@ -50,7 +50,7 @@ class LearnerConfig:
     """Share of every batch drawn from the demonstration set (demos and all their augmented copies),
     the rest from the other episodes (RLPD / SERL symmetric sampling); 0 samples uniformly (the paper)."""
     successes_as_demos: bool = False
-    """Episodes with a positive reward (online successes and their copies) join the demonstration set
+    """Episodes that succeeded (``Episode.succeeded``: online successes and their copies) join the demonstration set
     for demo_fraction and the BC term: self-imitation of what already worked (off: demos only)."""
     trim_batches: bool = True
     """Pad each batch to its longest episode instead of seq_len (same losses, less work)."""

@@ -86,17 +86,36 @@ def test_trimmed_batches_are_the_padded_ones_cut_at_the_longest_episode():
     assert not padded.mask[:, L:].any()  # what was cut was padding only
 
 
+def online(k: int, success: bool):
+    """An online episode that succeeded (terminated, reward on the last step) or timed out (truncated)."""
+    ep = make_episode(6, seed=500 + k, eid=f"online-{k}")
+    end = np.zeros(6, bool)
+    end[-1] = True
+    return dataclasses.replace(ep, rewards=end.astype(np.float32) * success, terminated=end & success,
+                               truncated=end & (not success))  # fmt: skip
+
+
 def with_successes():
-    """2 demos, 3 online successes (reward on the last step), 20 online failures."""
+    """2 demos, 3 online successes, 20 online failures."""
     replay = make_replay(capacity=2_000)
     for k in range(2):
         replay.insert(make_episode(4, seed=k, eid=f"demo-{k}", demo=True))
     for k in range(23):
-        ep = make_episode(6, seed=500 + k, eid=f"online-{k}")
-        rewards = np.zeros(6, np.float32)
-        rewards[-1] = 1.0 if k < 3 else 0.0
-        replay.insert(dataclasses.replace(ep, rewards=rewards))
+        replay.insert(online(k, success=k < 3))
     return replay
+
+
+def test_success_is_one_definition_the_last_step_terminated():
+    replay = make_replay(capacity=2_000)
+    replay.insert(make_episode(4, seed=0, eid="demo-0", demo=True))
+    won, lost = online(0, success=True), online(1, success=False)
+    rewarded_timeout = dataclasses.replace(lost, rewards=np.ones(6, np.float32), episode_id="online-2")
+    silent_win = dataclasses.replace(won, rewards=np.zeros(6, np.float32), episode_id="online-3")
+    assert [e.succeeded for e in (won, lost, rewarded_timeout, silent_win)] == [True, False, False, True]
+    for ep in (won, lost, rewarded_timeout, silent_win):
+        replay.insert(ep)
+    joined = replay.sample(2_000, np.random.default_rng(1), demo_fraction=0.5, successes_as_demos=True)
+    assert set(joined.episode_index[joined.from_demo_set]) == {0, 1, 4}  # demo, won, silent_win
 
 
 def test_successes_join_the_demo_set_only_when_asked():

@@ -95,14 +95,14 @@ class AugmentSettings:
 
     def isometric_count(self, ep: Episode) -> int:
         """How many rotated copies ``ep`` gets."""
-        if self.success_isometric_copies and bool(ep.terminated[-1]):
+        if self.success_isometric_copies and ep.succeeded:
             return self.success_isometric_copies
         return self.isometric_copies
 
     def applies_mea(self, ep: Episode) -> bool:
         if self.mea_copies == 0 or self.mea_on == "none":
             return False
-        success = bool(ep.terminated[-1])
+        success = ep.succeeded
         return {"demos": ep.is_demo and success, "successes": success, "all": True}[self.mea_on]
 
 

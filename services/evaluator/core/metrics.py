@@ -48,6 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from proto.episode import succeeded
+
 H_MAX = 50
 """The tasks' time limit in steps (the paper's H_max)."""
 
@@ -86,7 +88,7 @@ def episode_result(
     """An episode's result from its per-step rewards and terminal flags (success = the last step terminated)."""
     if len(rewards) != len(terminated):
         raise ValueError(f"{len(rewards)} rewards for {len(terminated)} terminal flags")
-    success = bool(len(terminated) > 0 and terminated[-1])
+    success = succeeded(terminated)
     return EpisodeResult(success, len(rewards), float(np.sum(np.asarray(rewards, np.float64))), seed)
 
 

@@ -60,7 +60,7 @@ class SequenceReplay(ReplayStorage):
         ``round(demo_fraction * batch_size)`` episodes are drawn uniformly from the demonstration set
         (raw demos and every augmented copy of one) and the rest uniformly from the other episodes
         (RLPD's symmetric sampling); while one of the two sets is empty the whole batch comes from the
-        other. ``successes_as_demos`` adds every episode with a positive reward (online successes and
+        other. ``successes_as_demos`` adds every episode that succeeded (online successes and
         their copies) to that set (self-imitation); ``SequenceBatch.from_demo_set`` tells which episodes
         were drawn from it. ``trim`` pads to the longest sampled episode instead of ``seq_len`` (the losses are
         masked and the LSTM causal, so padding past the longest episode changes nothing but the cost).

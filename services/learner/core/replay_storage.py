@@ -47,6 +47,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from proto.actions import ACTION_DIM
+from proto.episode import succeeded
 from services.observation import image_format
 
 if TYPE_CHECKING:
@@ -320,7 +321,7 @@ class ReplayStorage:
         self._ep_rows[slot, : T + 1] = rows
         self._ep_rows[slot, T + 1 :] = self._zero_row
         self._ep_length[slot] = T
-        self._ep_success[slot] = bool((rewards > 0).any())
+        self._ep_success[slot] = succeeded(terminated)
         self._order[self._n] = slot
         self._n += 1
         self._transitions += T

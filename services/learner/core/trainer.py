@@ -94,7 +94,7 @@ class TrainerSettings:
     demo_fraction: float = 0.0
     """Share of every batch drawn from the demonstration set (0: uniform)."""
     successes_as_demos: bool = False
-    """Episodes with a positive reward join the demonstration set."""
+    """Episodes that succeeded (``Episode.succeeded``) join the demonstration set."""
     max_env_steps: int = 0
     """Env-step budget of the run: the gate never allows more (0: none)."""
     max_updates: int = 0
