@@ -34,6 +34,9 @@ if TYPE_CHECKING:
 FILE = "learner.pt"
 PREVIOUS = "learner.prev.pt"
 FORMAT = 1
+PUBLISHED = "published.json"
+"""The newest version announced (run id and number), written before each announcement: a learner
+resumed from an older checkpoint continues past it, so no version number is published twice."""
 
 
 def _to_torch(x: Any) -> Any:
@@ -110,6 +113,44 @@ def load(directory: Path) -> tuple[dict, dict, dict]:
     if not errors:
         raise CheckpointError(f"no checkpoint in {directory}")
     raise CheckpointError("; ".join(errors))
+
+
+def record_published(directory: Path, run_id: str, version: int) -> None:
+    """Record ``version`` of ``run_id`` as announced (atomically, before the announcement goes out)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    tmp = directory / f".{PUBLISHED}.tmp"
+    with open(tmp, "w") as f:
+        f.write(json.dumps({"run_id": run_id, "version": int(version)}))
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, directory / PUBLISHED)
+
+
+def last_published(directory: Path) -> tuple[str, int] | None:
+    """(run id, version) of the newest announced version, or None if none is recorded (or the record
+    is unreadable, which a resume reports)."""
+    try:
+        rec = json.loads((directory / PUBLISHED).read_text())
+        return str(rec["run_id"]), int(rec["version"])
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CheckpointError(f"{directory / PUBLISHED}: unreadable ({exc})") from None
+
+
+def continued_lineage(
+    restored: Lineage | None, published: tuple[str, int] | None, fresh_run_id: str
+) -> Lineage:
+    """The lineage a (re)starting learner continues: the checkpoint's, moved past every version its run
+    announced after that checkpoint; with no checkpoint, the announced lineage itself (a learner
+    killed before its first checkpoint keeps its run id and goes on counting); else a new one."""
+    if restored is None:
+        if published is None:
+            return Lineage(-1, fresh_run_id, {})
+        return Lineage(published[1], published[0], {})
+    if published is not None and published[0] == restored.run_id and published[1] > restored.version:
+        return Lineage(published[1], restored.run_id, restored.last)
+    return restored
 
 
 def exists(directory: Path) -> bool:

@@ -153,7 +153,7 @@ PRESETS = {
         min_steps=50,
         error_buffer=50.0,
         publish_every=2,
-        checkpoint_minutes=0.0,
+        checkpoint_minutes=1.0,
     ),
 }
 

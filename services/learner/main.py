@@ -16,8 +16,11 @@ Threads
 Weights and checkpoints
     Version 0 (random initial weights) is published at start so that actors can act at once. Every
     ``checkpoint_minutes`` (and every ``checkpoint_every`` updates if set) and on SIGTERM the whole
-    state is checkpointed atomically; ``--resume`` continues from it, publishes checkpoint version + 1
-    and keeps the run id: one version lineage.
+    state is checkpointed atomically; ``--resume`` continues from it and keeps the run id: one version
+    lineage. Each version is recorded as announced (``checkpoints/published.json``) before it goes
+    out, so a learner killed after its checkpoint resumes past every version it announced since: no
+    version number is ever announced twice. On SIGTERM a last version goes out only if the weights
+    changed since the newest one.
 
 Bad input
     An episode the replay refuses (no policy images, wrong shape, too long) is logged, counted in
@@ -67,6 +70,7 @@ class Learner:
         self.server = WeightsServer(ctx.bus, ctx.instance)
         self.run_id = cfg.run_id or default_run_id(cfg.run_dir)
         self.version = -1
+        self.published_at = -1  # updates when the newest version was announced
         self.last: dict[str, float] = {}
         self.counts = {"episodes_in": 0, "rejected": 0}
         self.wait_seconds = 0.0
@@ -139,6 +143,8 @@ class Learner:
     def publish_weights(self) -> WeightsBlob:
         t0 = time.perf_counter()
         self.version += 1
+        checkpoint.record_published(self.ckpt_dir, self.run_id, self.version)
+        self.published_at = self.trainer.updates
         blob = WeightsBlob.create(
             self.version,
             "equi_rsac" if self.cfg.algorithm == "equi_rsac" else "rsac",
@@ -171,7 +177,21 @@ class Learner:
         return path
 
     def restore(self) -> None:
-        lineage = checkpoint.restore_trainer(self.ckpt_dir, self.trainer)
+        """Continue the run in ``ckpt_dir``: the checkpoint if there is one, and in any case past the
+        newest version the run announced (``checkpoint.continued_lineage``)."""
+        restored = (
+            checkpoint.restore_trainer(self.ckpt_dir, self.trainer)
+            if checkpoint.exists(self.ckpt_dir)
+            else None
+        )
+        if restored is None:
+            log.warning("--resume: no checkpoint yet, starting fresh", extra={"dir": str(self.ckpt_dir)})
+        lineage = checkpoint.continued_lineage(
+            restored, checkpoint.last_published(self.ckpt_dir), self.run_id
+        )
+        if restored is not None and lineage.version > restored.version:
+            log.warning("versions announced after the checkpoint are skipped",
+                        extra={"checkpoint_version": restored.version, "last_announced": lineage.version})  # fmt: skip
         self.version, self.run_id, self.last = lineage.version, lineage.run_id, lineage.last
         log.info("resumed", extra={"version": self.version, "updates": self.trainer.updates,
                                    "replay_transitions": len(self.trainer.replay), "run_id": self.run_id})  # fmt: skip
@@ -210,10 +230,8 @@ def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None =
     make_bus = subscribing_bus_factory(bus_factory, declare)
     with ServiceContext("learner", cfg.service, bus_factory=make_bus, counters=counters) as ctx:
         core = Learner(cfg, ctx, holder["sub"])  # type: ignore[arg-type]
-        if cfg.resume and checkpoint.exists(core.ckpt_dir):
+        if cfg.resume:
             core.restore()
-        elif cfg.resume:
-            log.warning("--resume: no checkpoint yet, starting fresh", extra={"dir": str(core.ckpt_dir)})
         config.save(dataclasses.replace(cfg, run_id=core.run_id), cfg.run_dir / "learner.json")
         holder["core"] = core
         core.publish_weights()
@@ -225,7 +243,8 @@ def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None =
             core.loop()
         finally:
             core.stop_ingest()
-            core.publish_weights()
+            if core.trainer.updates != core.published_at:  # a new version only for new weights
+                core.publish_weights()
             core.save_checkpoint()
             core.server.close()
         log.info("learner done", extra={"updates": core.trainer.updates, "version": core.version})

@@ -113,3 +113,37 @@ def test_a_trainer_round_trips_with_its_lineage(tmp_path):
     for name, tensor in a.sac.state_dict()["actor"].items():
         assert torch.equal(tensor, b.sac.state_dict()["actor"][name]), name
     assert (b.rng.random(4) == a.rng.random(4)).all()
+
+
+def test_a_resumed_lineage_never_reuses_an_announced_version(tmp_path):
+    from services.learner.checkpoint import (
+        CheckpointError,
+        Lineage,
+        continued_lineage,
+        last_published,
+        record_published,
+    )
+
+    assert last_published(tmp_path) is None
+    for v in range(7):
+        record_published(tmp_path, "run-a", v)
+    assert last_published(tmp_path) == ("run-a", 6)
+    at_ckpt = Lineage(3, "run-a", {"critic_loss": 0.5})
+    # killed after announcing v4..v6 past the checkpoint at v3: go on from v6
+    assert continued_lineage(at_ckpt, ("run-a", 6), "fresh") == Lineage(6, "run-a", {"critic_loss": 0.5})
+    # nothing announced past the checkpoint, or another run's record: the checkpoint's lineage
+    assert continued_lineage(at_ckpt, ("run-a", 3), "fresh") == at_ckpt
+    assert continued_lineage(at_ckpt, ("run-b", 99), "fresh") == at_ckpt
+    # killed before the first checkpoint: keep the run id and count on; nothing at all: a new lineage
+    assert continued_lineage(None, ("run-a", 6), "fresh") == Lineage(6, "run-a", {})
+    assert continued_lineage(None, None, "fresh") == Lineage(-1, "fresh", {})
+    (tmp_path / "published.json").write_text("{not json")
+    with pytest.raises(CheckpointError, match="published.json"):
+        last_published(tmp_path)
+
+
+def test_every_learner_preset_checkpoints():
+    from services.learner.config import PRESETS
+
+    for name, cfg in PRESETS.items():
+        assert cfg.checkpoint_minutes > 0 or cfg.checkpoint_every > 0, name
