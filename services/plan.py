@@ -16,6 +16,7 @@ from services.actor.config import ActorConfig
 from services.augmenter.config import AugmenterConfig
 from services.common.bus.zenoh_bus import ZenohConfig
 from services.common.config import ServiceConfig
+from services.common.metrics import DEFAULT_PORTS
 from services.evaluator.config import EvaluatorConfig
 from services.learner.config import PRESETS as LEARNER_PRESETS
 from services.run_config import SERVICE_MODULES, SERVICE_ORDER, RunConfig
@@ -34,13 +35,23 @@ class ChildSpec:
     config: Any = None
 
 
-def service_settings(run: RunConfig, instance: str) -> ServiceConfig:
-    """Identity, transport, metrics and logs of one instance: it joins the run's router; /metrics on
-    the service's default port, or none when the run turns metrics off."""
+def metrics_port(run: RunConfig, service: str, index: int) -> int:
+    """/metrics port of instance ``index`` of ``service``: the run's port base (the launcher's port)
+    plus the service's offset in the default layout (learner +1, augmenter +2, evaluator +3, actor i
+    +10 + i), so two runs with different bases share a host; 0 (off) when the run turns metrics off."""
+    if run.metrics_port == 0:
+        return 0
+    offset = DEFAULT_PORTS[service] - DEFAULT_PORTS["launcher"]
+    return run.metrics_port + offset + (index if service == "actor" else 0)
+
+
+def service_settings(run: RunConfig, service: str, index: int) -> ServiceConfig:
+    """Identity, transport, metrics and logs of one instance: it joins the run's router and serves
+    /metrics at ``metrics_port``."""
     return ServiceConfig(
-        instance_id=instance,
+        instance_id=f"{service}-{index}",
         zenoh=ZenohConfig(connect=(run.listen,), namespace=run.namespace),
-        metrics_port=0 if run.metrics_port == 0 else -1,
+        metrics_port=metrics_port(run, service, index),
         log_format=run.log_format,
     )
 
@@ -111,16 +122,16 @@ def evaluator_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> E
 
 def config_for(run: RunConfig, run_dir: Path, service: str, index: int) -> Any:
     """The frozen config of instance ``index`` of ``service`` in this run."""
-    settings = service_settings(run, f"{service}-{index}")
+    if service not in SERVICE_ORDER:
+        raise ValueError(f"unknown service {service!r}; choose from {SERVICE_ORDER}")
+    settings = service_settings(run, service, index)
     if service == "actor":
         return actor_config(run, index, settings)
     if service == "augmenter":
         return augmenter_config(run, settings)
     if service == "learner":
         return learner_config(run, run_dir, settings)
-    if service == "evaluator":
-        return evaluator_config(run, run_dir, settings)
-    raise ValueError(f"unknown service {service!r}; choose from {SERVICE_ORDER}")
+    return evaluator_config(run, run_dir, settings)
 
 
 def service_available(service: str) -> bool:

@@ -68,8 +68,9 @@ class RunConfig:
     namespace: str = "default"
     """Key namespace of this run (separates runs sharing a Zenoh network)."""
     metrics_port: int = 9100
-    """Launcher /metrics port (router traffic, services alive); services use their own defaults
-    (README). 0 disables every /metrics."""
+    """Port base of the run's /metrics: the launcher serves it (router traffic, services alive), each
+    service the base plus its offset (learner +1, augmenter +2, evaluator +3, actor i +10+i; README).
+    A second run on one host takes another base (e.g. 9200). 0 disables every /metrics."""
     duration_seconds: float = 0.0
     """Stop after this many seconds (0: run until Ctrl-C / SIGTERM)."""
     stop_grace_seconds: float = 30.0

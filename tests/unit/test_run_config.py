@@ -167,3 +167,23 @@ def test_progress_line_counts_and_eta():
                                 grasp_score=0.1, created_at=1.0))  # fmt: skip
     line = board.progress_line(started=0.0)
     assert "200/1,000" in line and "30%" in line and "v8" in line
+
+
+def test_metrics_ports_follow_the_runs_port_base_so_two_runs_share_a_host(tmp_path):
+    from services.common.metrics import DEFAULT_PORTS
+
+    def ports(run: RunConfig) -> dict[str, int]:
+        specs, _ = child_specs(run, tmp_path)
+        return {s.instance: s.config.service.metrics_port for s in specs}
+
+    default = ports(RunConfig(actors=3))
+    # the default base is the documented default layout
+    assert default == {"learner-0": DEFAULT_PORTS["learner"], "augmenter-0": DEFAULT_PORTS["augmenter"],
+                       "evaluator-0": DEFAULT_PORTS["evaluator"], "actor-0": DEFAULT_PORTS["actor"],
+                       "actor-1": DEFAULT_PORTS["actor"] + 1, "actor-2": DEFAULT_PORTS["actor"] + 2}  # fmt: skip
+    other = ports(RunConfig(actors=3, metrics_port=9200))
+    assert other == {k: v + 100 for k, v in default.items()}
+    for run_ports, base in ((default, 9100), (other, 9200)):
+        assert len(set(run_ports.values())) == len(run_ports) and base not in run_ports.values()
+    assert not set(default.values()) & set(other.values())
+    assert set(ports(RunConfig(actors=3, metrics_port=0)).values()) == {0}
