@@ -118,6 +118,7 @@ def _topic_row(t: Topic) -> list[object]:
         t.qos.priority.name,
         "yes" if t.qos.reliable else "no",
         "yes" if t.qos.express else "no",
+        "newest per key" if t.qos.latest_only else "every message",
         t.doc,
     ]
 
@@ -158,7 +159,17 @@ def render_reference() -> str:
 
     lines += ["### Topics", ""]
     lines += _table(
-        ["key expression", "kind", "message", "congestion", "priority", "reliable", "express", "description"],
+        [
+            "key expression",
+            "kind",
+            "message",
+            "congestion",
+            "priority",
+            "reliable",
+            "express",
+            "subscriber keeps",
+            "description",
+        ],
         [_topic_row(t) for t in TOPICS],
     )
     return "\n".join(lines) + "\n"

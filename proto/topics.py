@@ -49,6 +49,9 @@ class QoS:
     priority: Priority
     reliable: bool = True
     express: bool = False
+    latest_only: bool = False
+    """A subscriber keeps only the newest message per key (per sender) and never makes the transport
+    wait: for values where only the latest matters (gates, announcements, heartbeats)."""
 
 
 @dataclass(frozen=True)
@@ -88,7 +91,7 @@ WEIGHTS_ANNOUNCE = Topic(
     "weights/announce/{source}",
     Kind.PUBSUB,
     WeightsAnnouncement,
-    QoS(Congestion.BLOCK, Priority.INTERACTIVE_HIGH, express=True),
+    QoS(Congestion.BLOCK, Priority.INTERACTIVE_HIGH, express=True, latest_only=True),
     "a new weights version exists at learner `source`",
 )
 WEIGHTS_LATEST = Topic(
@@ -112,7 +115,7 @@ REPLAY_GATE = Topic(
     "learner/gate/{source}",
     Kind.PUBSUB,
     ReplayGate,
-    QoS(Congestion.BLOCK, Priority.INTERACTIVE_LOW),
+    QoS(Congestion.BLOCK, Priority.INTERACTIVE_LOW, latest_only=True),
     "the learner's insert allowance (sample-to-insert limiter); actors wait while it is used up",
 )
 STATUS = Topic(
@@ -120,7 +123,7 @@ STATUS = Topic(
     "status/{service}/{instance}",
     Kind.PUBSUB,
     Heartbeat,
-    QoS(Congestion.DROP, Priority.BACKGROUND, reliable=False),
+    QoS(Congestion.DROP, Priority.BACKGROUND, reliable=False, latest_only=True),
     "heartbeat of a service instance, about once a second",
 )
 ALIVE = Topic(

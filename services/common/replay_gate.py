@@ -9,6 +9,9 @@ from proto.control import ReplayGate
 from proto.topics import REPLAY_GATE
 from services.common.bus.base import Bus, Subscription
 
+MAX_CLOCK_SKEW = 5.0
+"""Seconds a gate may be dated ahead of this host's clock (hosts' clocks differ a little)."""
+
 
 class GateTracker:
     """Keeps the newest ``ReplayGate`` (by ``created_at``) from a subscription; ``update`` drains the
@@ -19,8 +22,13 @@ class GateTracker:
         self.latest: ReplayGate | None = None
         self.seen_at = 0.0
         """``time.monotonic()`` when the latest gate was taken (0: none yet)."""
+        self.future_dated = 0
+        """Gates ignored because they were dated more than ``MAX_CLOCK_SKEW`` s ahead of this clock."""
 
     def _take(self, gate: ReplayGate) -> None:
+        if gate.created_at > time.time() + MAX_CLOCK_SKEW:
+            self.future_dated += 1  # it would shadow every real gate after it
+            return
         if self.latest is None or gate.created_at >= self.latest.created_at:
             self.latest, self.seen_at = gate, time.monotonic()
 

@@ -53,21 +53,39 @@ class BusStats:
 
 
 class Subscription:
-    """Bounded FIFO between a transport thread and the consumer.
+    """Between a transport thread and the consumer.
 
-    When the queue is full the transport thread waits (it never drops accepted data): with BLOCK
-    congestion control this pushes back on the publisher. Consumers must keep draining.
+    Data topics (episodes): a bounded FIFO. When it is full the transport thread waits (it never
+    drops accepted data): with BLOCK congestion control this pushes back on the publisher.
+    Consumers must keep draining.
+
+    Latest-value topics (``QoS.latest_only``: gates, weights announcements, heartbeats): only the
+    newest message per key (per sender) is kept, and a push never waits, so a flood on one of them
+    cannot stall the transport thread that also delivers everything else. Keys are served oldest
+    first, so one busy sender does not starve the others.
     """
 
     def __init__(self, bus: Bus, topic: Topic, capacity: int) -> None:
         self._bus = bus
         self._topic = topic
+        self._latest = topic.qos.latest_only
         self._q: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=capacity)
+        self._newest: dict[str, bytes] = {}  # latest-value topics: key -> newest payload, oldest key first
+        self._cond = threading.Condition()
         self._closed = threading.Event()
         self._undeclare: Callable[[], None] | None = None
+        self.replaced = 0
+        """Latest-value topics: messages superseded by a newer one from the same sender before they were read."""
 
     # transport side -------------------------------------------------------------------------
     def push(self, key_expr: str, payload: bytes) -> None:
+        if self._latest:
+            with self._cond:
+                if self._newest.pop(key_expr, None) is not None:
+                    self.replaced += 1
+                self._newest[key_expr] = payload
+                self._cond.notify()
+            return
         while not self._closed.is_set():
             try:
                 self._q.put((key_expr, payload), timeout=0.1)
@@ -75,8 +93,23 @@ class Subscription:
             except queue.Full:
                 continue
 
+    def _get(self, timeout: float | None) -> tuple[str, bytes]:
+        """The next raw (key, payload); raises queue.Empty after ``timeout`` (0: do not wait)."""
+        if not self._latest:
+            return self._q.get(timeout=timeout) if timeout != 0.0 else self._q.get_nowait()
+        with self._cond:
+            if not self._newest and timeout != 0.0:
+                self._cond.wait_for(lambda: bool(self._newest), timeout)
+            if not self._newest:
+                raise queue.Empty
+            key_expr = next(iter(self._newest))
+            return key_expr, self._newest.pop(key_expr)
+
     # consumer side --------------------------------------------------------------------------
     def qsize(self) -> int:
+        if self._latest:
+            with self._cond:
+                return len(self._newest)
         return self._q.qsize()
 
     def recv(self, timeout: float | None = None) -> Delivery | None:
@@ -85,9 +118,7 @@ class Subscription:
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
             try:
-                key_expr, payload = (
-                    self._q.get(timeout=remaining) if remaining != 0.0 else self._q.get_nowait()
-                )
+                key_expr, payload = self._get(remaining)
             except queue.Empty:
                 return None
             delivery = self._bus.decode_delivery(self._topic, key_expr, payload)
