@@ -21,6 +21,7 @@ import numpy as np
 import pybullet as pb
 import pybullet_data
 
+from proto.actions import ACTION_DIM
 from services.tasks.camera import (
     Cameras,
     CameraSettings,
@@ -251,7 +252,14 @@ class ManipulationEnv:
             self.step_physics()
 
     def step(self, action: np.ndarray) -> tuple[Observation, float, bool, bool, dict]:
-        _, _, clipped = self.robot.command(action)
+        """One env step. An action that is not ``ACTION_DIM`` finite numbers is refused with a
+        ValueError naming what is wrong, before anything (robot, physics, time) changes."""
+        a = np.asarray(action, dtype=float)
+        if a.shape != (ACTION_DIM,):
+            raise ValueError(f"action: expected shape ({ACTION_DIM},) (jaw, dx, dy, dz, dtheta), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"action: every component must be finite, got {a.tolist()}")
+        _, _, clipped = self.robot.command(a)
         self.robot.settle(self.step_physics)
         self.t += 1
         obs = self.observe()

@@ -114,3 +114,24 @@ def test_depth_image_and_voxel_projection_share_orientation():
         assert abs(rows_v.mean() - rows_d.mean()) < 4 and abs(cols_v.mean() - cols_d.mean()) < 4
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_non_finite_action_is_refused_without_touching_the_env(env, bad):
+    """On every task: the refused step changes nothing, so the episode goes on as if it never came."""
+    ok = np.array([0.5, 0.3, -0.2, 0.1, 0.4])
+    env.reset(11)
+    env.step(ok)
+    reference = env.step(ok)[0]
+    env.reset(11)
+    env.step(ok)
+    before = (env.t, env.robot.target_pos.copy(), env.robot.target_yaw, env.robot.jaw)
+    action = ok.copy()
+    action[2] = bad
+    with pytest.raises(ValueError, match="finite"):
+        env.step(action)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(ok[:4])
+    after = (env.t, env.robot.target_pos, env.robot.target_yaw, env.robot.jaw)
+    assert before[0] == after[0] and np.array_equal(before[1], after[1]) and before[2:] == after[2:]
+    np.testing.assert_array_equal(env.step(ok)[0].points, reference.points)
