@@ -64,6 +64,10 @@ def _metrics(ctx: ServiceContext):
             "mea_actor_gate_wait_seconds", "Time spent waiting for the learner's replay gate to open."
         ),
         "bad_weights": m.counter("mea_actor_bad_weights", "Weights versions that could not be loaded."),
+        "bad_actions": m.counter(
+            "mea_actor_bad_actions",
+            "Episodes dropped because the env refused the policy's action (non-finite).",
+        ),
     }
 
 
@@ -141,7 +145,15 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
                 ctx.policy_version = policy.version
             if ctx.shutdown.is_set():
                 break
-            publish(actor.policy_episode(k, policy, on_step))
+            try:
+                episode = actor.policy_episode(k, policy, on_step)
+            except ValueError as exc:  # a policy's action the env refused (non-finite): drop the episode
+                mx["bad_actions"].inc()
+                log.error("episode dropped: the policy's action was refused",
+                          extra={"version": ctx.policy_version, "error": str(exc)[:300]})  # fmt: skip
+                ctx.shutdown.wait(0.5)
+                continue
+            publish(episode)
             k += 1
         if gate is not None:
             gate.close()

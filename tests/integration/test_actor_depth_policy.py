@@ -184,3 +184,35 @@ def test_policy_input_needs_the_depth_image():
     depth = np.full((84, 84), 0.3, np.float32)
     x = policy_input(dataclasses.replace(ep_obs, depth_image=depth), "depth")
     assert x.shape == (2, 84, 84) and x.dtype == np.uint8 and np.all(x[1] == 128)
+
+
+@pytest.mark.timeout(180)
+def test_an_episode_with_a_non_finite_action_is_dropped_counted_and_the_actor_runs_on(monkeypatch):
+    from services.learner.core import policy as policy_module
+
+    hub = Hub()
+    observer = InProcBus(hub)
+    episodes = observer.subscribe(EPISODES_RAW, capacity=8)
+    server = WeightsServer(observer, "learner-0")
+    server.publish(_blob(9, "voxel"))
+    registries: list = []
+    make_metrics = actor_main._metrics
+    monkeypatch.setattr(
+        actor_main, "_metrics", lambda ctx: registries.append(ctx.metrics.registry) or make_metrics(ctx)
+    )
+    real_act, calls = policy_module.PolicyRuntime.act, {"n": 0}
+
+    def act(self, x):  # the first episode's third action is NaN, every other one the policy's
+        calls["n"] += 1
+        a = real_act(self, x)
+        return np.full_like(a, np.nan) if calls["n"] == 3 else a
+
+    monkeypatch.setattr(policy_module.PolicyRuntime, "act", act)
+    cfg = dataclasses.replace(_cfg(4, depth_image=False), episodes=1)
+    try:
+        assert run(cfg, bus_factory=lambda _c: InProcBus(hub)) == 0
+    finally:
+        server.close()
+    got = [d.message for d in episodes.drain()]
+    assert len(got) == 1 and np.isfinite(got[0].actions).all()  # only the episode that finished
+    assert registries[0].get_sample_value("mea_actor_bad_actions_total") == 1
