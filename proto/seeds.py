@@ -13,6 +13,10 @@ RUN_SEED_STRIDE = 10**8
 """Actors' training seeds of run seed s start at s * RUN_SEED_STRIDE (+ the resume offset)."""
 RESUME_SEED_STRIDE = 10**5
 """Each resume moves the actors' seed streams on by this much."""
+RESTART_SEED_STRIDE = 10**4
+"""Each restart of an actor within a run moves its seed stream on by this much (a run's actor takes
+far fewer than 1e4 episodes between restarts; up to 9 restarts per resume stay apart from the next
+resume's stream)."""
 ACTOR_SEED_STRIDE = 1_000_000
 """Actor i's episode seeds start at its seed base + i * ACTOR_SEED_STRIDE."""
 SHARED_ROTATION_STREAM = 1_000_000

@@ -2,9 +2,12 @@
 
 The launcher hosts the Zenoh router itself (so nothing external is needed), starts every service
 that exists in this build with `spawn` (children never inherit a Zenoh session), shows a live
-status table from liveliness tokens and heartbeats, restarts nothing silently, and on Ctrl-C /
-SIGTERM stops every child within a few seconds (SIGTERM, then SIGKILL for stragglers). Children
-also die with the launcher (PR_SET_PDEATHSIG), so no orphan survives it.
+status table from liveliness tokens and heartbeats, restarts a service that exits on its own (with
+backoff, logged, counted in ``mea_launcher_service_restarts_total`` and the status line; a restarted
+actor takes fresh seeds and records no demos again, a restarted learner resumes its checkpoint) and
+stops the stack when one keeps exiting (``--restart-limit`` within ``--restart-window-seconds``), and
+on Ctrl-C / SIGTERM stops every child within a few seconds (SIGTERM, then SIGKILL for stragglers).
+Children also die with the launcher (PR_SET_PDEATHSIG), so no orphan survives it.
 """
 
 from __future__ import annotations
@@ -12,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import importlib
-import json
 import logging
 import multiprocessing as mp
 import os
@@ -20,15 +22,14 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 from rich.live import Live
-from rich.table import Table
 
-from proto.control import EvalReport, Heartbeat
-from proto.topics import EPISODES_RAW, EVAL_REPORTS, STATUS
+from proto.topics import EPISODES_RAW
 from services.common import config, logs
 from services.common.bus.base import Bus
 from services.common.bus.inproc import Hub, InProcBus
@@ -36,8 +37,10 @@ from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 from services.common.mcap_io import McapRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
-from services.plan import ChildSpec, child_specs
+from services.plan import ChildSpec, child_specs, restarted
 from services.run_config import PRESETS, RunConfig, resumed_config
+from services.status_board import StatusBoard
+from services.supervision import RestartPolicy, RestartSettings
 
 log = logging.getLogger(__name__)
 
@@ -90,152 +93,6 @@ def stop_children(procs: dict, grace: float) -> None:
             p.join(timeout=2.0)
 
 
-class StatusBoard:
-    """Latest heartbeat per instance, liveliness and evaluation reports, rendered as a table with a
-    progress line (env steps, augmented transitions, updates, weights version, success, ETA)."""
-
-    KEY_COUNTERS = 4
-    RATE_WINDOW = 120.0
-
-    def __init__(self, specs: list[ChildSpec], budget: int = 0, bus: Bus | None = None) -> None:
-        self.expected = [(s.service, s.instance) for s in specs]
-        self.beats: dict[tuple[str, str], Heartbeat] = {}
-        self.exits: dict[str, int] = {}
-        self.budget = budget
-        self.report: EvalReport | None = None
-        self.reports = 0
-        self._steps: list[tuple[float, float]] = []  # (time, env steps) for the rate
-        self.started = time.time()
-        self._subs = (
-            (bus.subscribe(STATUS, capacity=1024), bus.subscribe(EVAL_REPORTS, capacity=256)) if bus else None
-        )
-
-    def take(self, settle: float = 0.0) -> None:
-        """Take the heartbeats and reports received so far (waiting ``settle`` s for stragglers)."""
-        if self._subs is None:
-            return
-        if settle:
-            time.sleep(settle)
-        beats, reports = self._subs
-        for d in beats.drain():
-            self.update(d.message)
-        for d in reports.drain():
-            self.add_report(d.message)
-
-    def close(self) -> None:
-        for sub in self._subs or ():
-            sub.close()
-
-    def summary(self, episodes_recorded: int | None = None) -> dict:
-        """What the run did, from each instance's last heartbeat: counters per instance, evaluations,
-        the newest report, and the raw episodes recorded (None: not recorded)."""
-        return {
-            "instances": {
-                inst: {
-                    "service": svc,
-                    "exitcode": self.exits.get(inst),
-                    "counters": dict(self.beats[(svc, inst)].counters) if (svc, inst) in self.beats else {},
-                }
-                for svc, inst in self.expected
-            },  # fmt: skip
-            "evaluations": self.reports,
-            "last_report": None
-            if self.report is None
-            else {
-                "env_steps": self.report.env_steps,
-                "success_rate": self.report.success_rate,
-                "policy_version": self.report.policy_version,
-            },  # fmt: skip
-            "episodes_recorded": episodes_recorded,
-            "elapsed_seconds": round(time.time() - self.started, 1),
-        }
-
-    def save_summary(self, path: Path, episodes_recorded: int | None = None) -> None:
-        try:
-            path.write_text(json.dumps(self.summary(episodes_recorded), indent=2, sort_keys=True) + "\n")
-        except OSError as exc:
-            log.warning("run summary not written", extra={"path": str(path), "error": str(exc)})
-
-    def update(self, hb: Heartbeat) -> None:
-        self.beats[(hb.service, hb.instance_id)] = hb
-
-    def add_report(self, r: EvalReport) -> None:
-        self.reports += 1
-        if self.report is None or r.policy_version >= self.report.policy_version:
-            self.report = r
-
-    def _sum(self, service: str, key: str) -> float | None:
-        values = [
-            hb.counters[key] for (svc, _), hb in self.beats.items() if svc == service and key in hb.counters
-        ]
-        return sum(values) if values else None
-
-    def env_steps(self) -> float | None:
-        """The learner's count of inserted env steps (else the actors' own)."""
-        learner = self._sum("learner", "env_steps")
-        return learner if learner is not None else self._sum("actor", "env_steps")
-
-    def progress(self, started: float, now: float | None = None) -> dict[str, float | str | None]:
-        now = time.time() if now is None else now
-        steps = self.env_steps()
-        eta = None
-        if steps is not None:
-            self._steps = [(t, v) for t, v in self._steps if now - t <= self.RATE_WINDOW] + [(now, steps)]
-            (t0, v0), (t1, v1) = self._steps[0], self._steps[-1]
-            if self.budget and v1 > v0 and t1 > t0:
-                eta = max(0.0, (self.budget - v1) / ((v1 - v0) / (t1 - t0)))
-        r = self.report
-        return {
-            "env_steps": steps,
-            "augmented": self._sum("augmenter", "transitions_out"),
-            "updates": self._sum("learner", "updates"),
-            "version": self._sum("learner", "version"),
-            "success": None if r is None else r.success_rate,
-            "success_at": None if r is None else r.env_steps,
-            "elapsed": now - started,
-            "eta": eta,
-        }
-
-    def progress_line(self, started: float) -> str:
-        p = self.progress(started)
-
-        def n(v) -> str:
-            return "—" if v is None else f"{v:,.0f}"
-
-        budget = f"/{self.budget:,}" if self.budget else ""
-        success = "—" if p["success"] is None else f"{p['success']:.0%} (at {n(p['success_at'])} steps)"
-        eta = "—" if p["eta"] is None else f"{p['eta'] / 60:,.0f} min"
-        return (f"env steps {n(p['env_steps'])}{budget} · augmented transitions {n(p['augmented'])} · "
-                f"updates {n(p['updates'])} · weights v{n(p['version'])} · success {success} · "
-                f"elapsed {p['elapsed'] / 60:,.1f} min · ETA {eta}")  # fmt: skip
-
-    def table(self, alive: set[tuple[str, str]], started: float) -> Table:
-        t = Table(title=f"mea run — {time.time() - started:,.0f} s", caption=self.progress_line(started))
-        for col in ("service", "instance", "alive", "state", "policy", "counters"):
-            t.add_column(col)
-        for who in self.expected:
-            hb = self.beats.get(who)
-            if who[1] in self.exits:
-                state = f"exited ({self.exits[who[1]]})"
-            else:
-                state = hb.state if hb else "starting"
-            counters = ""
-            if hb:
-                counters = "  ".join(
-                    f"{k}={v:,.3g}" if abs(v) < 10 else f"{k}={v:,.0f}"
-                    for k, v in list(hb.counters.items())[: self.KEY_COUNTERS]
-                )
-            t.add_row(
-                who[0],
-                who[1],
-                "yes" if who in alive else "no",
-                state,
-                str(hb.policy_version) if hb else "—",
-                counters,
-            )
-        return t
-
-
 class EpisodeRecorder:
     """Writes every raw episode the router sees to an MCAP file, in a thread of the launcher."""
 
@@ -278,9 +135,57 @@ def _launcher_metrics(cfg: RunConfig, router: Bus) -> ServiceMetrics:
     return metrics
 
 
+class Supervisor:
+    """Restarts instances that exit on their own (``services.supervision``): with backoff, from the
+    plan's restart spec; gives up on one that keeps exiting, which stops the stack if the run says so."""
+
+    def __init__(self, cfg: RunConfig, specs: dict[str, ChildSpec], procs: dict, start, board: StatusBoard,
+                 metrics: ServiceMetrics) -> None:  # fmt: skip
+        self.cfg, self.specs, self.procs, self.start, self.board = cfg, specs, procs, start, board
+        self.policy = RestartPolicy(
+            RestartSettings(limit=cfg.restart_limit, window_seconds=cfg.restart_window_seconds)
+        )
+        self.due: dict[str, float] = {}  # instance -> monotonic time of its restart
+        self.exits = metrics.counter(
+            "mea_launcher_service_exits", "Service processes that exited before shutdown.", ["service"]
+        )
+        self.restarts = metrics.counter(
+            "mea_launcher_service_restarts", "Service restarts, by service.", ["service"]
+        )
+
+    def check(self, shutdown: Shutdown) -> bool:
+        """Handle exits and due restarts; returns True if the run must stop because a service failed."""
+        now = time.monotonic()
+        for name, p in self.procs.items():
+            if p.exitcode is None or name in self.due or name in self.board.exits:
+                continue
+            spec = self.specs[name]
+            self.exits.labels(spec.service).inc()
+            self.board.mark_exited(name, p.exitcode, getattr(p, "pid", None))
+            delay = self.policy.on_exit(name, now)
+            if delay is None:
+                log.error("service exited; not restarted", extra={"child": name, "exitcode": p.exitcode,
+                                                                  "restarts": self.policy.restarts[name]})  # fmt: skip
+                if self.cfg.stop_on_failure:
+                    shutdown.set(f"{name} exited with {p.exitcode}")
+                    return True
+                continue
+            log.error("service exited; restarting", extra={"child": name, "exitcode": p.exitcode,
+                                                           "in_seconds": delay})  # fmt: skip
+            self.due[name] = now + delay
+        for name, at in list(self.due.items()):
+            if now >= at and not shutdown.is_set():
+                del self.due[name]
+                n = self.policy.restarts[name]
+                self.procs[name] = self.start(restarted(self.specs[name], n))
+                self.board.restarted(name, n)
+                self.restarts.labels(self.specs[name].service).inc()
+        return False
+
+
 def _supervise(
     cfg: RunConfig,
-    procs: dict,
+    supervisor: Supervisor,
     board: StatusBoard,
     router: Bus,
     metrics: ServiceMetrics,
@@ -290,7 +195,6 @@ def _supervise(
     alive_gauge = metrics.gauge(
         "mea_launcher_services_alive", "Service instances holding a liveliness token."
     )
-    exited = metrics.counter("mea_launcher_service_exits", "Service processes that exited before shutdown.")
     watch = router.watch_alive()
     budget_reached_at: float | None = None
     started = time.time()
@@ -306,14 +210,7 @@ def _supervise(
     try:
         while not shutdown.is_set():
             board.take()
-            for name, p in procs.items():
-                if p.exitcode is not None and name not in board.exits:
-                    board.exits[name] = p.exitcode
-                    exited.inc()
-                    log.error("service exited", extra={"child": name, "exitcode": p.exitcode})
-                    if cfg.stop_on_failure:
-                        failed = True
-                        shutdown.set(f"{name} exited with {p.exitcode}")
+            failed = supervisor.check(shutdown) or failed
             alive = watch.alive()
             alive_gauge.set(sum(w in alive for w in board.expected))
             if cfg.duration_seconds and time.time() - started >= cfg.duration_seconds:
@@ -362,25 +259,28 @@ def _router(cfg: RunConfig) -> Bus:
     return ZenohBus(ZenohConfig(mode="router", listen=(cfg.listen,), namespace=cfg.namespace))
 
 
-def _start(cfg: RunConfig, specs: list[ChildSpec], router: Bus, shutdown: Shutdown) -> dict:
-    """Start every instance: a spawned process over Zenoh, or a thread over the in-process bus."""
-    procs: dict = {}
+def _starter(cfg: RunConfig, router: Bus, shutdown: Shutdown) -> Callable[[ChildSpec], Any]:
+    """How instances start: a spawned process over Zenoh, or a thread over the in-process bus."""
     if cfg.in_process:
         hub = router.hub  # type: ignore[attr-defined]
 
         def bus_factory(c):
             return InProcBus(hub, namespace=c.zenoh.namespace)
 
-        for s in specs:
-            procs[s.instance] = ServiceThread(s, bus_factory, shutdown)
-            procs[s.instance].start()
-        return procs
+        def start_thread(spec: ChildSpec) -> ServiceThread:
+            t = ServiceThread(spec, bus_factory, shutdown)
+            t.start()
+            return t
+
+        return start_thread
     ctx = mp.get_context("spawn")
-    for s in specs:
-        p = ctx.Process(target=_child_main, args=(s,), name=s.instance, daemon=False)
+
+    def start_process(spec: ChildSpec) -> mp.process.BaseProcess:
+        p = ctx.Process(target=_child_main, args=(spec,), name=spec.instance, daemon=False)
         p.start()
-        procs[s.instance] = p
-    return procs
+        return p
+
+    return start_process
 
 
 def _save_plan(specs: list[ChildSpec], run_dir: Path) -> None:
@@ -425,11 +325,13 @@ def run(cfg: RunConfig) -> int:
     board = StatusBoard(specs, budget=cfg.env_steps, bus=router)
     procs: dict = {}
     failed = False
+    start = _starter(cfg, router, shutdown)
     try:
-        procs = _start(cfg, specs, router, shutdown)
+        procs = {s.instance: start(s) for s in specs}
         topology = "in-process" if cfg.in_process else cfg.listen
         log.info("started", extra={"run_dir": str(run_dir), "children": len(procs), "listen": topology})
-        failed = _supervise(cfg, procs, board, router, metrics, shutdown)
+        supervisor = Supervisor(cfg, {s.instance: s for s in specs}, procs, start, board, metrics)
+        failed = _supervise(cfg, supervisor, board, router, metrics, shutdown)
         log.info(
             "stopping", extra={"reason": shutdown.reason, "progress": board.progress_line(board.started)}
         )

@@ -163,6 +163,18 @@ def child_specs(
     return specs, missing
 
 
+def restarted(spec: ChildSpec, restarts: int) -> ChildSpec:
+    """The spec that replaces ``spec`` after its ``restarts``-th restart: an actor records no demos
+    again and takes a fresh seed stream; a learner resumes from its checkpoint (and its announced
+    lineage); the others start as they did."""
+    cfg = spec.config
+    if spec.service == "actor":
+        cfg = dataclasses.replace(cfg, demos=0, incarnation=restarts)
+    elif spec.service == "learner":
+        cfg = dataclasses.replace(cfg, resume=True)
+    return dataclasses.replace(spec, config=cfg)
+
+
 def plugin_args(run: RunConfig, instance: str) -> list[str]:
     """The shared service settings as flags, for plugin services that parse their own argv."""
     args = ["--service.instance-id", instance, "--service.zenoh.connect", run.listen,

@@ -77,7 +77,14 @@ class RunConfig:
     """How long children get to exit after SIGTERM before SIGKILL (the learner writes its final
     checkpoint then; others exit within a second or two)."""
     stop_on_failure: bool = True
-    """If a service exits unexpectedly, stop the whole stack (otherwise keep running without it)."""
+    """If a service keeps exiting (more than restart_limit restarts within restart_window_seconds),
+    stop the whole stack (otherwise keep running without it)."""
+    restart_limit: int = 3
+    """Restarts of a service instance that exited on its own, with backoff (1, 2, 4 ... 30 s), within
+    restart_window_seconds before the launcher gives up on it (0: never restart). A restarted actor
+    records no demos again and takes fresh seeds; a restarted learner resumes from its checkpoint."""
+    restart_window_seconds: float = 600.0
+    """Window over which restarts count against restart_limit."""
     services: tuple[str, ...] = SERVICE_ORDER
     """Services to start (those not in this build are skipped, and listed)."""
     extra_services: tuple[str, ...] = ()
@@ -112,6 +119,8 @@ class RunConfig:
     def __post_init__(self) -> None:
         if self.actors < 0:
             raise ValueError("actors must be >= 0")
+        if self.restart_limit < 0 or self.restart_window_seconds <= 0:
+            raise ValueError("restart_limit must be >= 0 and restart_window_seconds > 0")
         if self.success_rotations is not None and self.success_rotations < 0:
             raise ValueError("success_rotations must be >= 0")
         if self.variant not in VARIANTS:

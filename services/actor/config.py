@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from proto.seeds import ACTOR_SEED_STRIDE, RESTART_SEED_STRIDE
 from services.common.config import ServiceConfig
 from services.tasks import EXPERT_STYLES, TASK_CLASSES, EnvSettings
 from services.tasks.camera import CameraSettings
@@ -35,6 +36,9 @@ class ActorConfig:
     """Points per segment in each observation."""
     max_demo_attempts: int = 4
     """Expert attempts per requested demonstration before giving up (only successes count)."""
+    incarnation: int = 0
+    """How many times this actor was restarted in this run: its seeds move on by
+    RESTART_SEED_STRIDE each time, so a restarted actor repeats no seed or episode id."""
     follow_gate: bool = True
     """Wait while the learner's replay gate says its update budget is used up (demos never wait)."""
     gate_timeout: float = 10.0
@@ -45,10 +49,17 @@ class ActorConfig:
     def __post_init__(self) -> None:
         if self.task not in TASK_CLASSES:
             raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
+        if self.incarnation < 0:
+            raise ValueError("incarnation must be >= 0")
         if self.policy not in POLICIES:
             raise ValueError(f"policy must be one of {POLICIES}, not {self.policy!r}")
         if self.expert_style not in ("alternate", *EXPERT_STYLES):
             raise ValueError(f"expert_style must be alternate, probe or direct, not {self.expert_style!r}")
+
+    def first_seed(self) -> int:
+        """This actor's first episode seed (``proto.seeds``): its seed base, moved on per actor index
+        and per restart."""
+        return self.seed_base + self.index * ACTOR_SEED_STRIDE + self.incarnation * RESTART_SEED_STRIDE
 
     def env_settings(self) -> EnvSettings:
         return EnvSettings(

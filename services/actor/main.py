@@ -26,7 +26,6 @@ import logging
 import time
 from collections.abc import Sequence
 
-from proto.seeds import ACTOR_SEED_STRIDE
 from proto.topics import EPISODES_RAW
 from services.actor.config import PRESETS, ActorConfig
 from services.actor.episodes import EpisodeBuilder
@@ -102,7 +101,7 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
         if cfg.policy == "learned":
             from services.learner.core.policy import PolicyRuntime  # torch: only for learned actors
 
-            policy = PolicyRuntime(deterministic=False, seed=cfg.seed_base + cfg.index * ACTOR_SEED_STRIDE)
+            policy = PolicyRuntime(deterministic=False, seed=cfg.first_seed())
 
         def on_step(seconds: float) -> None:
             counts["env_steps"] += 1

@@ -8,7 +8,6 @@ import time
 
 import numpy as np
 
-from proto.seeds import ACTOR_SEED_STRIDE
 from services.actor.config import ActorConfig, expert_style
 from services.actor.episodes import EpisodeBuilder
 from services.observation.depth_image import policy_images as depth_policy_images
@@ -72,7 +71,7 @@ class Actor:
         self.rng = np.random.default_rng([cfg.seed_base, cfg.index, 17])
 
     def next_seed(self) -> int:
-        seed = self.cfg.seed_base + self.cfg.index * ACTOR_SEED_STRIDE + self.counter
+        seed = self.cfg.first_seed() + self.counter
         self.counter += 1
         return seed
 

@@ -256,7 +256,9 @@ class ManipulationEnv:
         ValueError naming what is wrong, before anything (robot, physics, time) changes."""
         a = np.asarray(action, dtype=float)
         if a.shape != (ACTION_DIM,):
-            raise ValueError(f"action: expected shape ({ACTION_DIM},) (jaw, dx, dy, dz, dtheta), got {a.shape}")
+            raise ValueError(
+                f"action: expected shape ({ACTION_DIM},) (jaw, dx, dy, dz, dtheta), got {a.shape}"
+            )
         if not np.isfinite(a).all():
             raise ValueError(f"action: every component must be finite, got {a.tolist()}")
         _, _, clipped = self.robot.command(a)

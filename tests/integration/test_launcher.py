@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -126,7 +127,7 @@ def test_sigkilled_launcher_leaves_no_orphans(tmp_path):
 @pytest.mark.timeout(120)
 def test_a_failed_service_is_reported_and_stops_the_stack(tmp_path):
     port = _port()
-    proc = _launch(tmp_path, port)
+    proc = _launch(tmp_path, port, "--restart-limit", "0")
     try:
         child = _wait_for_service(port)
         os.kill(child, signal.SIGKILL)
@@ -134,6 +135,45 @@ def test_a_failed_service_is_reported_and_stops_the_stack(tmp_path):
         out = proc.stdout.read()
         assert rc == 1, out
         assert "service exited" in out and "exitcode=-9" in out, out
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
+def _wait_for_new_pid(port: int, old: int, timeout: float = 60.0) -> int:
+    """The pid of the dummy service's next heartbeat from a process other than ``old``."""
+    from proto.topics import STATUS
+
+    bus = ZenohBus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
+    try:
+        beats = bus.subscribe(STATUS, service="test")
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            d = beats.recv(timeout=1.0)
+            if d is not None and d.message.pid != old:
+                return d.message.pid
+        raise AssertionError("the service was not restarted")
+    finally:
+        bus.close()
+
+
+@pytest.mark.timeout(180)
+def test_a_killed_service_is_restarted_and_a_service_that_keeps_dying_stops_the_stack(tmp_path):
+    port = _port()
+    proc = _launch(tmp_path, port, "--restart-limit", "1", "--restart-window-seconds", "300")
+    try:
+        first = _wait_for_service(port)
+        os.kill(first, signal.SIGKILL)
+        second = _wait_for_new_pid(port, first)  # restarted after the 1 s backoff
+        assert _pid_alive(second) and proc.poll() is None
+        os.kill(second, signal.SIGKILL)  # the second exit within the window: give up, stop the stack
+        rc = proc.wait(timeout=30)
+        out = proc.stdout.read()
+        assert rc == 1, out
+        assert "restarting" in out and "not restarted" in out, out
+        summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+        assert summary["instances"]["extra-0"]["restarts"] == 1
+        assert summary["instances"]["extra-0"]["exitcode"] == -signal.SIGKILL
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

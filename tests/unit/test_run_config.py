@@ -10,10 +10,10 @@ import pytest
 from proto.control import EvalReport, Heartbeat
 from proto.seeds import EVAL_SEED_BASE
 from services.common import config
-from services.launcher import StatusBoard
 from services.learner.config import PRESETS as LEARNER_PRESETS
 from services.plan import ChildSpec, child_specs, config_for
 from services.run_config import CPU_LEARNER_PRESETS, RunConfig, resumed_config
+from services.status_board import StatusBoard
 
 
 def augmenter_cfg(run: RunConfig, tmp_path):
@@ -187,3 +187,20 @@ def test_metrics_ports_follow_the_runs_port_base_so_two_runs_share_a_host(tmp_pa
         assert len(set(run_ports.values())) == len(run_ports) and base not in run_ports.values()
     assert not set(default.values()) & set(other.values())
     assert set(ports(RunConfig(actors=3, metrics_port=0)).values()) == {0}
+
+
+def test_a_restarted_instance_repeats_no_demo_or_seed_and_a_learner_resumes(tmp_path):
+    from proto.seeds import RESTART_SEED_STRIDE
+    from services.plan import restarted
+
+    specs, _ = child_specs(RunConfig(demos=2, actors=2), tmp_path)
+    by = {s.instance: s for s in specs}
+    a0 = by["actor-0"]
+    again = restarted(a0, 1).config
+    assert a0.config.demos == 2 and again.demos == 0 and again.incarnation == 1
+    assert again.first_seed() == a0.config.first_seed() + RESTART_SEED_STRIDE
+    # restarted actors' seed streams stay apart from each other and from the other actors'
+    firsts = [restarted(s, n).config.first_seed() for s in (a0, by["actor-1"]) for n in range(10)]
+    assert len(set(firsts)) == 20 and max(firsts) - min(firsts) < 2_000_000
+    assert not by["learner-0"].config.resume and restarted(by["learner-0"], 1).config.resume
+    assert restarted(by["augmenter-0"], 3) == by["augmenter-0"]
