@@ -18,6 +18,7 @@ from services.actor.config import ActorConfig
 from services.actor.rollout import Actor
 from services.common import config, logs
 from services.common.mcap_io import McapRecorder
+from services.tasks import EXPERT_STYLES, TASK_CLASSES
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +43,22 @@ class DemosConfig:
     """Also record the baseline depth image."""
     overwrite: bool = False
     """Replace an existing output file."""
+
+    def __post_init__(self) -> None:
+        if self.task not in TASK_CLASSES:
+            raise ValueError(f"--task must be one of {', '.join(sorted(TASK_CLASSES))}, not {self.task!r}")
+        if self.style not in ("alternate", *EXPERT_STYLES):
+            raise ValueError(f"--style must be alternate, probe or direct, not {self.style!r}")
+        if self.n < 1:
+            raise ValueError(f"--n must be >= 1 (demonstrations to record), not {self.n}")
+        if self.seed_base < 0:
+            raise ValueError(f"--seed-base must be >= 0, not {self.seed_base}")
+        if self.max_attempts < 0:
+            raise ValueError(f"--max-attempts must be >= 0 (0: 4 per demonstration), not {self.max_attempts}")
+        if not Path(self.out).parent.is_dir():
+            raise ValueError(f"--out: the directory {str(Path(self.out).parent)!r} does not exist")
+        if Path(self.out).exists() and not self.overwrite:
+            raise ValueError(f"--out: {str(self.out)!r} exists; pass --overwrite to replace it")
 
 
 PRESETS = {"default": DemosConfig()}

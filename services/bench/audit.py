@@ -41,6 +41,7 @@ from services.augmenter.core.pipeline import (
 from services.bench import audit_tables as rep
 from services.bench.report import emit
 from services.common import config
+from services.tasks import TASK_CLASSES
 
 if TYPE_CHECKING:  # the env (pybullet) is imported only where run_audit builds one
     from services.tasks.env import ManipulationEnv
@@ -84,6 +85,8 @@ class AuditConfig:
     """MEA settings audited (phases, group ranges, feasibility guards)."""
 
     def __post_init__(self) -> None:
+        if self.task not in TASK_CLASSES:
+            raise ValueError(f"--task must be one of {', '.join(sorted(TASK_CLASSES))}, not {self.task!r}")
         if self.episodes < 1 or self.max_attempts < 1 or min(self.copies, self.isometric, self.views) < 0:
             raise ValueError("episodes and max_attempts must be >= 1; copies, isometric and views >= 0")
 

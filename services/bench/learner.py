@@ -78,6 +78,13 @@ class LearnerBenchConfig:
     json: bool = False
     """Print exactly one JSON object instead of tables."""
 
+    def __post_init__(self) -> None:
+        for v in self.variants:
+            try:
+                variant_net(v)
+            except ValueError as exc:
+                raise ValueError(f"--variants: {exc}") from None
+
 
 def _log(msg: str) -> None:
     print(f"[bench learner] {msg}", file=sys.stderr, flush=True)
@@ -105,6 +112,8 @@ def variant_net(variant: str) -> tuple[str, NetConfig, int]:
     preset, _, group = variant.partition(":")
     if preset not in LEARNER_PRESETS:
         raise ValueError(f"unknown preset {preset!r} in {variant!r}; choose from {sorted(LEARNER_PRESETS)}")
+    if group not in ("", "c4", "d4", "none"):
+        raise ValueError(f"unknown group {group!r} in {variant!r}; choose from c4, d4, none")
     lc = LEARNER_PRESETS[preset]
     return preset, dataclasses.replace(lc.net, group=group or lc.net.group), lc.batch_size
 

@@ -52,6 +52,7 @@ def parse(cls: type[C], presets: Mapping[str, C], argv: Sequence[str], prog: str
     pre.add_argument("--preset", choices=sorted(presets), default=next(iter(presets)))
     known, rest = pre.parse_known_args(list(argv))
     desc = f"{description}\n\nPresets (--preset, applied before other flags): {', '.join(presets)}; default {next(iter(presets))}."
+    # a ValueError from a config's own checks (__post_init__) ends in tyro's error box, exit 2
     return tyro.cli(cls, prog=prog, description=desc, args=rest, default=presets[known.preset])
 
 
