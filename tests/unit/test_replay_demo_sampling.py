@@ -139,3 +139,21 @@ def test_the_success_set_survives_a_checkpoint_round_trip():
     b = restored.sample(64, np.random.default_rng(6), demo_fraction=0.5, successes_as_demos=True)
     np.testing.assert_array_equal(a.episode_index, b.episode_index)
     np.testing.assert_array_equal(a.from_demo_set, b.from_demo_set)
+
+
+def test_a_repeated_delivery_of_an_episode_is_refused_and_changes_nothing():
+    replay = with_successes()
+    before = (len(replay), replay.num_episodes, replay.episode_ids())
+    with pytest.raises(ValueError, match="duplicate: episode 'online-4'"):
+        replay.insert(online(4, success=False))
+    assert (len(replay), replay.num_episodes, replay.episode_ids()) == before
+    # also after a checkpoint round trip, and an id is free again once its episode is evicted
+    restored = make_replay(capacity=2_000)
+    restored.load_state_dict(replay.state_dict())
+    with pytest.raises(ValueError, match="duplicate"):
+        restored.insert(online(4, success=False))
+    small = make_replay(capacity=30)
+    for k in range(8):  # 6 steps each: the oldest are evicted
+        small.insert(online(k, success=False))
+    assert "online-0" not in small.episode_ids()
+    small.insert(online(0, success=False))

@@ -150,3 +150,12 @@ def test_the_guard_covers_replay_and_limiter_but_never_an_update() -> None:
     assert guard.entries == 4  # drawing the batch, then counting the update
     trainer.limiter.sampled(100)
     assert trainer.step() is None and guard.entries == 5
+
+
+def test_a_repeated_delivery_counts_its_env_steps_once() -> None:
+    trainer = tiny_trainer()
+    raw = learner_episode(0, T=9)
+    trainer.insert(raw)
+    with pytest.raises(ValueError, match="duplicate"):
+        trainer.insert(raw)
+    assert trainer.env_steps == 9 and trainer.gate().inserted == 9

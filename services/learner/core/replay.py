@@ -224,6 +224,7 @@ class SequenceReplay(ReplayStorage):
         if n and (self._ep_kind[:n].min() < 0 or self._ep_kind[:n].max() >= len(self._kind_names)):
             raise ValueError("kind: code outside kind_names")
         self._ep_id[:n], self._ep_source[:n] = ids, sources
+        self._stored = set(ids)
         demo = self._ep_demo[:n]
         self._demo_transitions = int(lengths[demo].sum())
         self._demo_episodes = int(demo.sum())

@@ -231,6 +231,8 @@ class ReplayStorage:
         Raises ``ValueError`` naming the offending field if the episode does not match the buffer's
         configuration, or if it cannot fit beside the pinned demonstrations; the buffer is then unchanged.
         """
+        if str(ep.episode_id) in self._stored:
+            raise ValueError(f"duplicate: episode {ep.episode_id!r} is already stored (a repeated delivery)")
         T, codes, const = self._checked_arrays(ep)
         state = self._checked_state(T, state)
         aug = ep.augmentation
@@ -333,6 +335,7 @@ class ReplayStorage:
         self._ep_kind[slot] = kind
         self._ep_demo[slot] = demo
         self._ep_id[slot] = episode_id
+        self._stored.add(episode_id)
         self._ep_source[slot] = source
         if demo:
             self._demo_transitions += int(self._ep_length[slot])
@@ -355,6 +358,7 @@ class ReplayStorage:
         self._transitions -= T
         self._evicted_episodes += 1
         self._evicted_transitions += T
+        self._stored.discard(self._ep_id[slot])
         self._ep_id[slot] = self._ep_source[slot] = ""
 
     # ---------------------------------------------------------------- internals
@@ -386,6 +390,7 @@ class ReplayStorage:
         self._ep_serial[:], self._ep_demo[:], self._ep_kind[:], self._ep_success[:] = 0, False, 0, False
         self._kind_names = [RAW_KIND]
         self._demo_ids: set[str] = set()
+        self._stored: set[str] = set()  # ids of the stored episodes: a repeated delivery is refused
         self._demo_transitions = self._demo_episodes = 0
         self._next_serial = 0
         self._evicted_episodes = self._evicted_transitions = 0
