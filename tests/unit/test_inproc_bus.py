@@ -422,3 +422,18 @@ def test_bad_key_parts_raise(bus, make_episode) -> None:
         bus.publish(EPISODES_RAW, ep, source="actor-0", extra="x")
     with pytest.raises(ValueError):
         InProcBus(namespace="bad namespace").publish(EPISODES_RAW, ep, source="actor-0")
+
+
+def test_rejected_messages_are_all_counted_but_logged_at_most_once_per_topic_in_a_while(bus, caplog) -> None:
+    from services.common.bus.base import LogLimiter
+
+    sub = bus.subscribe(STATUS, capacity=2_000)
+    with caplog.at_level("WARNING", logger="services.common.bus.base"):
+        for k in range(1_000):
+            bus.publish(STATUS, pack({"not": "a heartbeat", "k": k}), service="svc", instance=f"i-{k}")
+        assert sub.drain() == []
+    assert bus.stats.bad[STATUS.name] == 1_000
+    assert len([r for r in caplog.records if r.getMessage() == "rejected message"]) == 1
+    limiter = LogLimiter(seconds=5.0)
+    assert [limiter.allow("t", now) for now in (0.0, 4.9, 5.0, 5.1, 10.2)] == [True, False, True, False, True]
+    assert limiter.allow("other", 5.1)

@@ -185,6 +185,23 @@ class AliveWatch:
 QueryHandler = Callable[[dict[str, str]], "Message | bytes | None"]
 
 
+class LogLimiter:
+    """At most one log line per key every ``seconds`` (a flood of bad messages must not flood the logs;
+    the exact counts live in the metrics)."""
+
+    def __init__(self, seconds: float = 5.0) -> None:
+        self.seconds = seconds
+        self._last: dict[str, float] = {}
+
+    def allow(self, key: str, now: float | None = None) -> bool:
+        now = time.monotonic() if now is None else now
+        last = self._last.get(key)
+        if last is not None and now - last < self.seconds:
+            return False
+        self._last[key] = now
+        return True
+
+
 class Bus(ABC):
     """Publish/subscribe, query/serve and liveliness over typed topics."""
 
@@ -193,6 +210,7 @@ class Bus(ABC):
         self.limits = limits
         self.stats = BusStats()
         self.on_bad_message: BadMessageHook | None = None
+        self._reject_log = LogLimiter()
 
     # helpers shared by implementations -------------------------------------------------------
     def key(self, topic: Topic, **parts: str) -> str:
@@ -216,7 +234,9 @@ class Bus(ABC):
         except (ProtocolError, ValueError) as exc:
             err = exc if isinstance(exc, ProtocolError) else ProtocolError("<key>", str(exc))
             self.stats.bad[topic.name] += 1
-            log.warning("rejected message", extra={"topic": topic.name, "key": key_expr, "error": str(err)})
+            if self._reject_log.allow(topic.name):  # counts stay exact; the log is rate-limited
+                log.warning("rejected message", extra={"topic": topic.name, "key": key_expr, "error": str(err),
+                                                       "rejected_total": self.stats.bad[topic.name]})  # fmt: skip
             if self.on_bad_message is not None:
                 self.on_bad_message(topic, key_expr, err)
             return None
