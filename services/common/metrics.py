@@ -79,7 +79,7 @@ class ServiceMetrics:
         PlatformCollector(registry=self.registry)
         self.service = service
         info = Info("mea_service", "Service identity.", registry=self.registry)
-        info.info({"service": service, "instance": instance, "pid": str(os.getpid())})
+        info.info({"service": service, "service_instance": instance, "pid": str(os.getpid())})
         self.started = time.time()
         Gauge("mea_start_time_seconds", "UNIX time the service started.", registry=self.registry).set(
             self.started

@@ -306,6 +306,13 @@ def test_truncated_file_readable_up_to_the_cut(tmp_path, make_episode):
         assert recover(cut_path) == expected
         if cut < ends[-1]:
             assert stats.truncated and stats.errors
+    # a file missing only its last bytes (end magic, footer) has all its messages but is not whole
+    for missing in (1, 10):
+        cut_path = tmp_path / f"tail-{missing}.mcap"
+        cut_path.write_bytes(data[:-missing])
+        stats = ReadStats()
+        assert len(list(read_messages(cut_path, stats=stats))) == len(eps)
+        assert stats.truncated and not stats.indexed and "footer" in stats.errors[-1], stats.errors
     # metadata written before the cut survives it
     assert read_metadata(tmp_path / f"cut-{ends[0]}.mcap.tmp")["run"] == {"task": "block_pull"}
     assert recover(path) == len(eps)

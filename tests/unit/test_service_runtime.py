@@ -92,7 +92,12 @@ def test_service_context_heartbeats_liveliness_and_metrics():
         body = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
     assert ("learner", "learner-0") not in watch.alive()
     assert 'mea_bus_published_messages_total{topic="status"}' in body
-    assert "mea_policy_version" in body and 'mea_service_info{instance="learner-0"' in body
+    assert (
+        "mea_policy_version" in body
+        and 'service_instance="learner-0"' in body
+        and "mea_service_info{" in body
+        and 'instance="learner-0"' not in body.replace("service_instance", "")
+    )
     assert observer.stats.bad["status"] == 1
 
 

@@ -47,7 +47,8 @@ class ReadStats:
     indexed: bool = False
     """The file had a valid footer and summary and was read through its index."""
     truncated: bool = False
-    """The linear scan stopped at an incomplete or corrupt record (crashed or damaged file)."""
+    """The file is not whole: the linear scan stopped at an incomplete or corrupt record, or the data
+    was complete but the summary, footer or end magic is missing or damaged (crashed or damaged file)."""
     errors: list[str] = field(default_factory=list)
     """The first problems met, as text."""
 
@@ -112,7 +113,13 @@ def scan_records(f: IO[bytes], size: int, stats: ReadStats) -> Iterator:
             return
         opcode, length = _RECORD_HEAD.unpack(head)
         if opcode in (Opcode.DATA_END, Opcode.FOOTER):
-            return  # the data section is complete; the summary repeats what we have seen
+            # the data section is complete; the summary would repeat what we have seen. We scan only
+            # when the footer or summary is missing or unreadable: the file's tail is damaged.
+            stats.truncated = True
+            stats.note(
+                f"data section complete up to byte {pos}, but the summary, footer or end magic is missing or damaged"
+            )
+            return
         if length > size - pos - _RECORD_HEAD.size:
             stats.truncated = True
             stats.note(f"record (opcode {opcode}) at byte {pos} needs {length} bytes, file ends first")
