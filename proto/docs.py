@@ -119,6 +119,7 @@ def _topic_row(t: Topic) -> list[object]:
         "yes" if t.qos.reliable else "no",
         "yes" if t.qos.express else "no",
         "newest per key" if t.qos.latest_only else "every message",
+        f"{t.max_bytes // (1024 * 1024)} MiB",
         t.doc,
     ]
 
@@ -168,6 +169,7 @@ def render_reference() -> str:
             "reliable",
             "express",
             "subscriber keeps",
+            "max message",
             "description",
         ],
         [_topic_row(t) for t in TOPICS],

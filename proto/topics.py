@@ -62,6 +62,9 @@ class Topic:
     message: type[Message] | None
     qos: QoS
     doc: str
+    max_bytes: int = 1024 * 1024
+    """Largest encoded message a subscriber accepts on this topic (larger ones are refused and
+    counted before decoding): sized to the largest legitimate message with room to spare."""
 
     @property
     def placeholders(self) -> tuple[str, ...]:
@@ -69,6 +72,8 @@ class Topic:
 
 
 _DATA = QoS(Congestion.BLOCK, Priority.DATA)
+EPISODE_MAX_BYTES = 64 * 1024 * 1024
+"""An 80-step episode with 1,024 points per segment, its depth image and policy images is under 8 MiB."""
 
 EPISODES_RAW = Topic(
     "episodes_raw",
@@ -77,6 +82,7 @@ EPISODES_RAW = Topic(
     Episode,
     _DATA,
     "finished episodes from actor `source`",
+    EPISODE_MAX_BYTES,
 )
 EPISODES_AUGMENTED = Topic(
     "episodes_augmented",
@@ -85,6 +91,7 @@ EPISODES_AUGMENTED = Topic(
     Episode,
     _DATA,
     "raw episodes passed through plus augmented copies, from augmenter `source`",
+    EPISODE_MAX_BYTES,
 )
 WEIGHTS_ANNOUNCE = Topic(
     "weights_announce",
@@ -101,6 +108,7 @@ WEIGHTS_LATEST = Topic(
     WeightsBlob,
     QoS(Congestion.BLOCK, Priority.DATA_HIGH),
     "queryable: the latest weights blob; selector parameter `min_version=N` answers nothing when older",
+    256 * 1024 * 1024,
 )
 EVAL_REPORTS = Topic(
     "eval_reports",

@@ -229,6 +229,10 @@ class Bus(ABC):
 
     def decode_delivery(self, topic: Topic, key_expr: str, payload: bytes) -> Delivery | None:
         try:
+            if len(payload) > topic.max_bytes:
+                raise ProtocolError(
+                    "<message>", f"{len(payload)} bytes over the {topic.name} cap {topic.max_bytes}"
+                )
             _, _, parts = parse(key_expr)
             msg = topic.message.decode(payload, self.limits)  # type: ignore[union-attr]
         except (ProtocolError, ValueError) as exc:
