@@ -45,6 +45,12 @@ from services.supervision import RestartPolicy, RestartSettings
 log = logging.getLogger(__name__)
 
 
+def _entry(spec: ChildSpec) -> Callable:
+    """The function ``spec.entry`` ("module:function"; function main when omitted) names."""
+    module_name, _, func = spec.entry.partition(":")
+    return getattr(importlib.import_module(module_name), func or "main")
+
+
 class ServiceThread(threading.Thread):
     """A service running in the launcher's process (``--in-process``), with a process's ``exitcode``
     (None while it runs; its return value, or 1 if it raised) so supervision treats both alike."""
@@ -55,11 +61,9 @@ class ServiceThread(threading.Thread):
         self.exitcode: int | None = None
 
     def run(self) -> None:
-        module_name, _, func = self.spec.entry.partition(":")
         try:
             with stopped_by(self.parent):  # the service's own Shutdown follows the launcher's
-                fn = getattr(importlib.import_module(module_name), func)
-                code = fn(self.spec.config, bus_factory=self.bus_factory)
+                code = _entry(self.spec)(self.spec.config, bus_factory=self.bus_factory)
             self.exitcode = int(code or 0)
         except BaseException:  # noqa: BLE001 - a failed service is reported like a dead process
             log.exception("service failed", extra={"child": self.spec.instance})
@@ -71,9 +75,7 @@ class ServiceThread(threading.Thread):
 
 def _child_main(spec: ChildSpec) -> None:
     die_with_parent()
-    module_name, _, func = spec.entry.partition(":")
-    fn = getattr(importlib.import_module(module_name), func or "main")
-    sys.exit(fn(spec.config if spec.config is not None else list(spec.argv)) or 0)
+    sys.exit(_entry(spec)(spec.config if spec.config is not None else list(spec.argv)) or 0)
 
 
 def stop_children(procs: dict, grace: float) -> None:

@@ -90,14 +90,8 @@ def test_depth_policy_acts_on_the_rendered_depth_image():
     assert len(out) == 5 and all(e.images.dtype == np.uint8 for e in out)
 
 
-@pytest.mark.timeout(180)
-def test_actor_without_depth_image_refuses_a_depth_policy_and_runs_on(monkeypatch):
-    hub = Hub()
-    observer = InProcBus(hub)
-    episodes = observer.subscribe(EPISODES_RAW, capacity=8)
-    server = WeightsServer(observer, "learner-0")
-    server.publish(_blob(7, "depth"))
-
+def spy_metrics(monkeypatch) -> list:
+    """The actor's metric registries, collected as the actor under test creates them."""
     registries: list = []
     make_metrics = actor_main._metrics
 
@@ -106,6 +100,18 @@ def test_actor_without_depth_image_refuses_a_depth_policy_and_runs_on(monkeypatc
         return make_metrics(ctx)
 
     monkeypatch.setattr(actor_main, "_metrics", spy)
+    return registries
+
+
+@pytest.mark.timeout(180)
+def test_actor_without_depth_image_refuses_a_depth_policy_and_runs_on(monkeypatch):
+    hub = Hub()
+    observer = InProcBus(hub)
+    episodes = observer.subscribe(EPISODES_RAW, capacity=8)
+    server = WeightsServer(observer, "learner-0")
+    server.publish(_blob(7, "depth"))
+
+    registries = spy_metrics(monkeypatch)
 
     def bad_weights() -> float:
         return registries[0].get_sample_value("mea_actor_bad_weights_total") if registries else 0.0
@@ -195,11 +201,7 @@ def test_an_episode_with_a_non_finite_action_is_dropped_counted_and_the_actor_ru
     episodes = observer.subscribe(EPISODES_RAW, capacity=8)
     server = WeightsServer(observer, "learner-0")
     server.publish(_blob(9, "voxel"))
-    registries: list = []
-    make_metrics = actor_main._metrics
-    monkeypatch.setattr(
-        actor_main, "_metrics", lambda ctx: registries.append(ctx.metrics.registry) or make_metrics(ctx)
-    )
+    registries = spy_metrics(monkeypatch)
     real_act, calls = policy_module.PolicyRuntime.act, {"n": 0}
 
     def act(self, x):  # the first episode's third action is NaN, every other one the policy's
