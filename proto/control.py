@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from proto.codec import Message
 from proto.episode import TASKS
-from proto.specs import ID_PATTERN, Float, Int, MapOf, Str, spec
+from proto.specs import ID_PATTERN, Float, Int, ListOf, MapOf, Str, spec
 
 SERVICES = ("router", "actor", "augmenter", "learner", "evaluator", "inference", "launcher", "bench", "test")
 STATES = ("starting", "running", "stopping", "failed")
@@ -71,3 +71,26 @@ class ReplayGate(Message):
     policy_version: int = spec(Int(-1, 2**62), "latest weights version published")
     replay_transitions: int = spec(Int(0, 2**62), "transitions stored (raw and augmented)")
     created_at: float = spec(Float(0.0), "UNIX time (s) of this gate")
+
+
+ACK_WINDOW = 256
+"""Raw episode ids an ``EpisodeAck`` carries: the newest the learner has taken."""
+
+
+@dataclass(frozen=True)
+class EpisodeAck(Message):
+    """The raw episodes that reached the learner, newest last: a sliding window, so one ack that is
+    superseded before it is read loses nothing. Actors keep each episode they published until an
+    ack names it, and publish it again when an augmenter or learner (re)starts or the ack is late;
+    the learner stores an episode id once (repeats are acknowledged again, not stored)."""
+
+    TYPE = "EpisodeAck"
+    VERSION = 1
+
+    learner_id: str = spec(Str(pattern=ID_PATTERN), "learner instance id")
+    run_id: str = spec(Str(pattern=ID_PATTERN), "training run id")
+    episode_ids: list = spec(
+        ListOf(Str(pattern=ID_PATTERN), max_len=ACK_WINDOW),
+        "raw episode ids taken (stored, repeated or refused), oldest first",
+    )
+    created_at: float = spec(Float(0.0), "UNIX time (s) of this ack")

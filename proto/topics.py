@@ -11,7 +11,7 @@ import re
 from dataclasses import dataclass
 
 from proto.codec import Message
-from proto.control import EvalReport, Heartbeat, ReplayGate
+from proto.control import EpisodeAck, EvalReport, Heartbeat, ReplayGate
 from proto.episode import Episode
 from proto.specs import ID_PATTERN
 from proto.weights import WeightsAnnouncement, WeightsBlob
@@ -65,6 +65,9 @@ class Topic:
     max_bytes: int = 1024 * 1024
     """Largest encoded message a subscriber accepts on this topic (larger ones are refused and
     counted before decoding): sized to the largest legitimate message with room to spare."""
+    writers: tuple[str, ...] = ()
+    """Service kinds whose sealed messages consumers accept on this topic (empty: any service of
+    the run). Enforced when the run authenticates its bus (see proto/seal.py)."""
 
     @property
     def placeholders(self) -> tuple[str, ...]:
@@ -83,6 +86,7 @@ EPISODES_RAW = Topic(
     _DATA,
     "finished episodes from actor `source`",
     EPISODE_MAX_BYTES,
+    ("actor",),
 )
 EPISODES_AUGMENTED = Topic(
     "episodes_augmented",
@@ -92,6 +96,7 @@ EPISODES_AUGMENTED = Topic(
     _DATA,
     "raw episodes passed through plus augmented copies, from augmenter `source`",
     EPISODE_MAX_BYTES,
+    ("augmenter",),
 )
 WEIGHTS_ANNOUNCE = Topic(
     "weights_announce",
@@ -100,6 +105,7 @@ WEIGHTS_ANNOUNCE = Topic(
     WeightsAnnouncement,
     QoS(Congestion.BLOCK, Priority.INTERACTIVE_HIGH, express=True, latest_only=True),
     "a new weights version exists at learner `source`",
+    writers=("learner",),
 )
 WEIGHTS_LATEST = Topic(
     "weights_latest",
@@ -109,6 +115,7 @@ WEIGHTS_LATEST = Topic(
     QoS(Congestion.BLOCK, Priority.DATA_HIGH),
     "queryable: the latest weights blob; selector parameter `min_version=N` answers nothing when older",
     256 * 1024 * 1024,
+    ("learner",),
 )
 EVAL_REPORTS = Topic(
     "eval_reports",
@@ -117,6 +124,7 @@ EVAL_REPORTS = Topic(
     EvalReport,
     _DATA,
     "evaluation results from evaluator `source`",
+    writers=("evaluator",),
 )
 REPLAY_GATE = Topic(
     "replay_gate",
@@ -125,6 +133,16 @@ REPLAY_GATE = Topic(
     ReplayGate,
     QoS(Congestion.BLOCK, Priority.INTERACTIVE_LOW, latest_only=True),
     "the learner's insert allowance (sample-to-insert limiter); actors wait while it is used up",
+    writers=("learner",),
+)
+EPISODE_ACKS = Topic(
+    "episode_acks",
+    "learner/acks/{source}",
+    Kind.PUBSUB,
+    EpisodeAck,
+    QoS(Congestion.BLOCK, Priority.INTERACTIVE_LOW, latest_only=True),
+    "raw episodes learner `source` has taken (a sliding window); actors publish again what it lacks",
+    writers=("learner",),
 )
 STATUS = Topic(
     "status",
@@ -150,6 +168,7 @@ TOPICS: tuple[Topic, ...] = (
     WEIGHTS_LATEST,
     EVAL_REPORTS,
     REPLAY_GATE,
+    EPISODE_ACKS,
     STATUS,
     ALIVE,
 )
@@ -206,6 +225,19 @@ def parse(key_expr: str) -> tuple[Topic, str, dict[str, str]]:
                 check_chunk(name, value)
             return topic, namespace, parts
     raise TopicKeyError(f"{key_expr!r}: no topic matches")
+
+
+def may_write(topic: Topic, parts: dict[str, str], service: str, instance: str) -> str | None:
+    """Why ``service/instance`` may not have sent a message on ``topic`` at the key with ``parts``
+    (None when it may): its kind must be one of ``topic.writers`` and the key's ``source`` (or
+    ``service``/``instance``) placeholders must name the sender itself."""
+    if topic.writers and service not in topic.writers:
+        return f"{topic.name} is written only by {'/'.join(topic.writers)}, not {service}"
+    if "source" in parts and parts["source"] != instance:
+        return f"{service}/{instance} may not publish as source {parts['source']}"
+    if parts.get("service", service) != service or parts.get("instance", instance) != instance:
+        return f"{service}/{instance} may not publish as {parts.get('service')}/{parts.get('instance')}"
+    return None
 
 
 def by_name(name: str) -> Topic:

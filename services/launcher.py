@@ -30,8 +30,8 @@ from rich.console import Console
 from rich.live import Live
 
 from proto.topics import EPISODES_RAW
-from services.common import config, logs
-from services.common.bus.base import Bus
+from services.common import config, logs, run_key
+from services.common.bus.base import Bus, Credentials
 from services.common.bus.inproc import Hub, InProcBus
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 from services.common.mcap_io import McapRecorder
@@ -319,6 +319,10 @@ def run(cfg: RunConfig) -> int:
     except Exception as exc:  # noqa: BLE001 - zenoh raises ZError; turn it into a clear message
         print(f"mea run: cannot start the Zenoh router on {cfg.listen}: {exc}", file=sys.stderr)
         return 2
+    if cfg.authenticate:  # the launcher reads heartbeats, reports and episodes as the run's own
+        key = run_key.create(run_dir / run_key.FILE_NAME)
+        router.authenticate(Credentials(key, "launcher", "launcher"))
+        log.info("bus authenticated", extra={"run_key": run_key.describe(key)})
     metrics = _launcher_metrics(cfg, router)
     recorder = None
     if cfg.record:

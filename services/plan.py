@@ -14,6 +14,7 @@ from typing import Any
 from proto.seeds import actor_seed_base
 from services.actor.config import ActorConfig
 from services.augmenter.config import AugmenterConfig
+from services.common import run_key
 from services.common.bus.zenoh_bus import ZenohConfig
 from services.common.config import ServiceConfig
 from services.common.metrics import DEFAULT_PORTS
@@ -45,14 +46,20 @@ def metrics_port(run: RunConfig, service: str, index: int) -> int:
     return run.metrics_port + offset + (index if service == "actor" else 0)
 
 
-def service_settings(run: RunConfig, service: str, index: int) -> ServiceConfig:
-    """Identity, transport, metrics and logs of one instance: it joins the run's router and serves
-    /metrics at ``metrics_port``."""
+def key_file(run: RunConfig, run_dir: Path) -> str:
+    """The run's key file when the run authenticates its bus ("" otherwise)."""
+    return str(run_dir / run_key.FILE_NAME) if run.authenticate else ""
+
+
+def service_settings(run: RunConfig, run_dir: Path, service: str, index: int) -> ServiceConfig:
+    """Identity, transport, metrics, logs and the run's key of one instance: it joins the run's
+    router, serves /metrics at ``metrics_port`` and seals with the run's key."""
     return ServiceConfig(
         instance_id=f"{service}-{index}",
         zenoh=ZenohConfig(connect=(run.listen,), namespace=run.namespace),
         metrics_port=metrics_port(run, service, index),
         log_format=run.log_format,
+        run_key_file=key_file(run, run_dir),
     )
 
 
@@ -124,7 +131,7 @@ def config_for(run: RunConfig, run_dir: Path, service: str, index: int) -> Any:
     """The frozen config of instance ``index`` of ``service`` in this run."""
     if service not in SERVICE_ORDER:
         raise ValueError(f"unknown service {service!r}; choose from {SERVICE_ORDER}")
-    settings = service_settings(run, service, index)
+    settings = service_settings(run, run_dir, service, index)
     if service == "actor":
         return actor_config(run, index, settings)
     if service == "augmenter":
@@ -159,7 +166,7 @@ def child_specs(
             specs.append(ChildSpec(service, f"{service}-{i}", f"{SERVICE_MODULES[service]}:run", config=cfg))
     for i, entry in enumerate(run.extra_services):
         instance = f"extra-{i}"
-        specs.append(ChildSpec("test", instance, entry, argv=tuple(plugin_args(run, instance))))
+        specs.append(ChildSpec("test", instance, entry, argv=tuple(plugin_args(run, run_dir, instance))))
     return specs, missing
 
 
@@ -175,8 +182,9 @@ def restarted(spec: ChildSpec, restarts: int) -> ChildSpec:
     return dataclasses.replace(spec, config=cfg)
 
 
-def plugin_args(run: RunConfig, instance: str) -> list[str]:
+def plugin_args(run: RunConfig, run_dir: Path, instance: str) -> list[str]:
     """The shared service settings as flags, for plugin services that parse their own argv."""
     args = ["--service.instance-id", instance, "--service.zenoh.connect", run.listen,
-            "--service.zenoh.namespace", run.namespace, "--service.log-format", run.log_format]  # fmt: skip
+            "--service.zenoh.namespace", run.namespace, "--service.log-format", run.log_format,
+            "--service.run-key-file", key_file(run, run_dir)]  # fmt: skip
     return args + (["--service.metrics-port", "0"] if run.metrics_port == 0 else [])

@@ -67,6 +67,10 @@ class RunConfig:
     """Endpoint of the embedded Zenoh router; services connect to it."""
     namespace: str = "default"
     """Key namespace of this run (separates runs sharing a Zenoh network)."""
+    authenticate: bool = True
+    """Seal every message with the run's key (RUN_DIR/run.key, created at run start, owner-only):
+    services accept only what the run's own services sealed, each on the topics it may write
+    (proto/seal.py). Services joining from another host need a copy of the key file."""
     metrics_port: int = 9100
     """Port base of the run's /metrics: the launcher serves it (router traffic, services alive), each
     service the base plus its offset (learner +1, augmenter +2, evaluator +3, actor i +10+i; README).

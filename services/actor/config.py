@@ -43,6 +43,12 @@ class ActorConfig:
     """Wait while the learner's replay gate says its update budget is used up (demos never wait)."""
     gate_timeout: float = 10.0
     """A gate older than this (s) is ignored (learner gone): the actor runs on."""
+    unacked_limit: int = 32
+    """Published episodes kept until the learner acknowledges them (services/actor/outbox.py); with a
+    learner alive the actor waits when this many are unacknowledged."""
+    resend_seconds: float = 300.0
+    """Publish an episode again when no ack named it for this long (it is also published again at
+    once when an augmenter or learner starts or restarts)."""
     service: ServiceConfig = ServiceConfig()
     """Identity, transport, metrics and logs."""
 
@@ -51,6 +57,8 @@ class ActorConfig:
             raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
         if self.incarnation < 0:
             raise ValueError("incarnation must be >= 0")
+        if self.unacked_limit < 1 or self.resend_seconds <= 0:
+            raise ValueError("unacked_limit must be >= 1 and resend_seconds > 0")
         if self.policy not in POLICIES:
             raise ValueError(f"policy must be one of {POLICIES}, not {self.policy!r}")
         if self.expert_style not in ("alternate", *EXPERT_STYLES):

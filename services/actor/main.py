@@ -13,6 +13,11 @@ latest ``ReplayGate`` (fresher than ``--gate-timeout``) still allows env steps; 
 for a gate; with no learner (no gate seen) it then runs freely. Each actor can overshoot the
 allowance by at most the episode it already started.
 
+Delivery: every published episode is kept until the learner's ``EpisodeAck`` names it, and
+published again when an augmenter or learner (re)starts (its liveliness token appears) or after
+``--resend-seconds`` without an ack (``services/actor/outbox.py``); with a learner alive the actor
+waits while ``--unacked-limit`` episodes are unacknowledged. The learner stores an id once.
+
 Policy input: a learned policy's weights say which observation it was trained on
 (``PolicySpec.observation``): ``voxel`` (the voxel projection of the point clouds, ``policy_image``)
 or ``depth`` (the rendered Equi-RSAC depth image, ``policy_input``). A ``depth`` policy needs the env
@@ -26,9 +31,10 @@ import logging
 import time
 from collections.abc import Sequence
 
-from proto.topics import EPISODES_RAW
+from proto.topics import EPISODE_ACKS, EPISODES_RAW
 from services.actor.config import PRESETS, ActorConfig
 from services.actor.episodes import EpisodeBuilder
+from services.actor.outbox import Outbox
 from services.actor.rollout import Actor
 from services.common import config
 from services.common.replay_gate import GateFollower
@@ -67,7 +73,69 @@ def _metrics(ctx: ServiceContext):
             "mea_actor_bad_actions",
             "Episodes dropped because the env refused the policy's action (non-finite).",
         ),
+        "resent": m.counter(
+            "mea_actor_resent_episodes",
+            "Episodes published again (no ack yet when a consumer restarted or in time).",
+        ),
+        "unacked": m.gauge(
+            "mea_actor_unacked_episodes", "Published episodes the learner has not acknowledged."
+        ),
+        "ack_wait": m.counter(
+            "mea_actor_ack_wait_seconds", "Time spent waiting for acks with --unacked-limit episodes pending."
+        ),
     }
+
+
+CONSUMERS = ("augmenter", "learner")
+
+
+class Delivery:
+    """The actor's side of at-least-once delivery (the learner's dedup makes it exactly-once)."""
+
+    def __init__(self, ctx: ServiceContext, cfg: ActorConfig, mx: dict) -> None:
+        self.ctx, self.mx = ctx, mx
+        self.outbox: Outbox = Outbox(cfg.unacked_limit, cfg.resend_seconds)
+        self.acks = ctx.bus.subscribe(EPISODE_ACKS, capacity=16)
+        self.watch = ctx.bus.watch_alive()
+
+    def publish(self, episode) -> None:
+        self.ctx.bus.publish(EPISODES_RAW, episode, source=self.ctx.instance)
+        self.outbox.sent(episode.episode_id, episode, time.monotonic())
+        self.mx["unacked"].set(len(self.outbox))
+
+    def learner_alive(self) -> bool:
+        return any(svc == "learner" for svc, _ in self.watch.alive())
+
+    def tend(self) -> None:
+        """Take acks; publish again what a (re)started consumer or a late ack calls for."""
+        for d in self.acks.drain():
+            self.outbox.ack(d.message.episode_ids)
+        for _, episode in self.outbox.due(time.monotonic(), self.watch.came_alive(CONSUMERS)):
+            self.ctx.bus.publish(EPISODES_RAW, episode, source=self.ctx.instance)
+            self.mx["resent"].inc()
+        self.mx["unacked"].set(len(self.outbox))
+
+    def wait_for_room(self) -> None:
+        """With a learner alive, wait while the outbox is full (acks free it, resends go out)."""
+        t0 = time.monotonic()
+        self.tend()
+        while self.outbox.full and self.learner_alive() and not self.ctx.shutdown.wait(0.1):
+            self.tend()
+        self.mx["ack_wait"].inc(time.monotonic() - t0)
+
+    def flush(self, timeout: float) -> None:
+        """Before a clean exit (episode limit reached): wait up to ``timeout`` s, while a learner is
+        alive, until every published episode is acknowledged."""
+        deadline = time.monotonic() + timeout
+        self.tend()
+        while len(self.outbox) and self.learner_alive() and time.monotonic() < deadline:
+            if self.ctx.shutdown.wait(0.1):
+                return
+            self.tend()
+
+    def close(self) -> None:
+        self.acks.close()
+        self.watch.close()
 
 
 def _load_weights(weights: WeightsClient, policy, mx, counts: dict, depth_image: bool = False) -> None:
@@ -97,6 +165,7 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
         mx = _metrics(ctx)
         weights = WeightsClient(ctx.bus) if cfg.policy == "learned" else None
         gate = GateFollower(ctx.bus, cfg.gate_timeout) if cfg.follow_gate else None
+        delivery = Delivery(ctx, cfg, mx)
         policy = None
         if cfg.policy == "learned":
             from services.learner.core.policy import PolicyRuntime  # torch: only for learned actors
@@ -109,8 +178,9 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
             mx["step_seconds"].observe(seconds)
 
         def publish(b: EpisodeBuilder) -> None:
+            delivery.wait_for_room()
             t0 = time.perf_counter()
-            ctx.bus.publish(EPISODES_RAW, b.finish(actor.episode_id(b)), source=ctx.instance)
+            delivery.publish(b.finish(actor.episode_id(b)))
             mx["publish_seconds"].observe(time.perf_counter() - t0)
             kind = b.meta["policy_kind"]
             counts["episodes"] += 1
@@ -134,8 +204,9 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
             log.warning("fewer demonstrations than requested", extra={"demos": demos, "requested": cfg.demos})
         k = 0
         while (cfg.episodes == 0 or k < cfg.episodes) and not ctx.shutdown.is_set():
+            delivery.tend()
             if gate is not None:
-                mx["gate_wait"].inc(gate.wait(ctx.shutdown))
+                mx["gate_wait"].inc(gate.wait(ctx.shutdown, delivery.tend))
             if weights is not None:
                 _load_weights(weights, policy, mx, counts, cfg.depth_image)
                 if not policy.ready:  # no weights yet: wait for the learner's first version
@@ -154,8 +225,10 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
                 continue
             publish(episode)
             k += 1
+        delivery.flush(cfg.resend_seconds)  # a stop by SIGTERM returns at once
         if gate is not None:
             gate.close()
+        delivery.close()
         actor.env.close()
     return 0
 

@@ -47,6 +47,7 @@ audit valid fraction.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -122,9 +123,15 @@ class Augmenter:
                 self.mx["episodes_out"].labels(output_kind(ep)).inc()
                 self.mx["transitions_out"].inc(ep.num_steps)
         except Exception:  # noqa: BLE001 - one bad episode must not take the augmenter down
-            log.exception("augmenting an episode failed", extra={"episode_id": raw.episode_id})
+            log.exception(
+                "augmenting an episode failed; passing it on unaugmented",
+                extra={"episode_id": raw.episode_id},
+            )
             self.counts["failed"] += 1
             self.mx["failed"].inc()
+            # the actor's data is still good: the learner takes (and acknowledges) it without copies
+            with contextlib.suppress(Exception):
+                self.ctx.bus.publish(EPISODES_AUGMENTED, raw, source=self.ctx.instance)
             return
         self.mx["latency_seconds"].observe(time.monotonic() - t_recv)
         self.mx["age_seconds"].observe(max(0.0, time.time() - raw.created_at))

@@ -38,6 +38,10 @@ class ServiceConfig:
     """Python logging level."""
     heartbeat_seconds: float = 1.0
     """Period of the status heartbeat."""
+    run_key_file: str = ""
+    """The run's key (hex, owner-only file; `mea run` creates RUN_DIR/run.key): every message is sealed
+    with it and only messages sealed with it by a service allowed on the topic are accepted. Empty:
+    the bus is not authenticated (anyone on the Zenoh network can write to it)."""
 
     def __post_init__(self) -> None:
         if self.log_format not in ("json", "text"):

@@ -63,6 +63,11 @@ class _BusCollector(Collector):
                 s.bad,
                 "Messages rejected by the decoder (ProtocolError), by topic.",
             ),
+            (
+                "mea_bus_unauthenticated_messages",
+                s.unauthenticated,
+                "Of the rejected: seal missing or invalid for this run, or a sender not allowed on the topic.",
+            ),
         ):
             fam = CounterMetricFamily(name, doc, labels=["topic"])
             for topic, v in sorted(counter.items()):

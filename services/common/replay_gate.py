@@ -4,6 +4,7 @@ the learner's env steps from it)."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 from proto.control import ReplayGate
 from proto.topics import REPLAY_GATE
@@ -64,11 +65,13 @@ class GateFollower:
             return False
         return gate.inserted_steps >= gate.allowed_steps
 
-    def wait(self, stop) -> float:
-        """Wait until the gate opens (or goes stale, or ``stop`` is set); returns seconds waited."""
+    def wait(self, stop, while_waiting: Callable[[], None] | None = None) -> float:
+        """Wait until the gate opens (or goes stale, or ``stop`` is set), calling ``while_waiting``
+        about every 0.05 s; returns seconds waited."""
         t0 = time.monotonic()
         while self.blocked() and not stop.wait(0.05):
-            pass
+            if while_waiting is not None:
+                while_waiting()
         return time.monotonic() - t0
 
     def close(self) -> None:

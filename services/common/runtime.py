@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 
 from proto.control import Heartbeat
 from proto.topics import STATUS
-from services.common import logs
-from services.common.bus.base import Bus
+from services.common import logs, run_key
+from services.common.bus.base import Bus, Credentials
 from services.common.bus.zenoh_bus import ZenohBus
 from services.common.config import ServiceConfig
 from services.common.metrics import DEFAULT_PORTS, ServiceMetrics
@@ -140,6 +140,10 @@ class ServiceContext:
 
     def __enter__(self) -> ServiceContext:
         logs.setup(self.service, self.instance, self.cfg.log_format, self.cfg.log_level)
+        try:
+            key = run_key.load(self.cfg.run_key_file) if self.cfg.run_key_file else None
+        except run_key.RunKeyError as exc:
+            raise SystemExit(f"{self.service}: {exc}") from None
         port = self.cfg.metrics_port
         if port < 0:
             port = DEFAULT_PORTS.get(self.service, 0) + (self.index if self.service == "actor" else 0)
@@ -150,11 +154,16 @@ class ServiceContext:
                 f"{self.service}: cannot serve /metrics on {self.cfg.metrics_addr}:{port}: {exc}"
             ) from None
         self.bus = self.bus_factory(self.cfg)
+        if key is not None:
+            self.bus.authenticate(Credentials(key, self.service, self.instance))
+        else:
+            log.warning("bus not authenticated: any process on the Zenoh network can write to it")
         self.metrics.watch_bus(self.bus)
         self._token = self.bus.declare_alive(self.service, self.instance)
         self._hb_thread = threading.Thread(target=self._heartbeats, name="heartbeat", daemon=True)
         self._hb_thread.start()
-        log.info("started", extra={"metrics_port": self.metrics_port, "namespace": self.cfg.zenoh.namespace})
+        log.info("started", extra={"metrics_port": self.metrics_port, "namespace": self.cfg.zenoh.namespace,
+                                   "run_key": run_key.describe(key) if key is not None else None})  # fmt: skip
         self.state = "running"
         return self
 

@@ -8,7 +8,9 @@ Threads
     * ingest: drains ``EPISODES_AUGMENTED`` (raw episodes pass through the augmenter, then their
       copies) into the sequence replay, and publishes the replay gate (``ReplayGate`` on
       ``learner/gate``: how many env steps the learner takes before producers should wait; it asks,
-      it never drops). It never waits on training, so the Zenoh receive thread is never held up.
+      it never drops), and ``EpisodeAck`` on ``learner/acks`` (the raw episode ids taken, so actors
+      publish again only what never arrived; an id is stored once). It never waits on training, so
+      the Zenoh receive thread is never held up.
     * train (main thread): while the limiter allows, samples whole episodes, runs one SAC update, and
       every ``publish_every`` updates announces a new weights version; otherwise it waits (counted in
       ``mea_learner_wait_seconds_total``).
@@ -34,13 +36,15 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
 
+from proto.control import ACK_WINDOW, EpisodeAck
 from proto.episode import Episode
-from proto.topics import EPISODES_AUGMENTED, REPLAY_GATE
+from proto.topics import EPISODE_ACKS, EPISODES_AUGMENTED, REPLAY_GATE
 from proto.weights import WeightsBlob
 from services.common import config
 from services.common.bus.base import Bus, Subscription
@@ -53,6 +57,8 @@ from services.learner.core.policy import PolicySpec, actor_tensors
 from services.learner.metrics import UpdateRate, learner_metrics, record_gate, record_update, rejection_reason
 
 log = logging.getLogger(__name__)
+ACK_REFRESH_SECONDS = 5.0
+"""An unchanged EpisodeAck is published again this often (for actors that joined since)."""
 
 
 class Learner:
@@ -73,6 +79,8 @@ class Learner:
         self.published_at = -1  # updates when the newest version was announced
         self.last: dict[str, float] = {}
         self.counts = {"episodes_in": 0, "rejected": 0}
+        self.taken: deque[str] = deque(maxlen=ACK_WINDOW)  # raw episode ids, for EpisodeAck
+        self._acks_due, self._acked_at = False, 0.0
         self.wait_seconds = 0.0
         self._rate = UpdateRate()
         self._stop_ingest = threading.Event()
@@ -83,6 +91,9 @@ class Learner:
     # ---------------------------------------------------------------- replay side
     def ingest(self, ep: Episode) -> None:
         kind = "raw" if ep.augmentation is None else ep.augmentation.kind
+        if ep.augmentation is None:  # taken, whatever happens below: the actor may let it go
+            self.taken.append(ep.episode_id)
+            self._acks_due = True
         try:
             self.trainer.insert(ep)
         except ValueError as exc:
@@ -109,7 +120,12 @@ class Learner:
         gate = reading.message(self.ctx.instance, self.run_id, max(self.version, -1), time.time())
         try:
             self.ctx.bus.publish(REPLAY_GATE, gate, source=self.ctx.instance)
-        except Exception:  # noqa: BLE001 - a lost gate is replaced half a second later
+            if self._acks_due or time.monotonic() - self._acked_at > ACK_REFRESH_SECONDS:
+                ack = EpisodeAck(learner_id=self.ctx.instance, run_id=self.run_id,
+                                 episode_ids=list(self.taken), created_at=time.time())  # fmt: skip
+                self.ctx.bus.publish(EPISODE_ACKS, ack, source=self.ctx.instance)
+                self._acks_due, self._acked_at = False, time.monotonic()
+        except Exception:  # noqa: BLE001 - a lost gate or ack is replaced half a second later
             log.exception("publishing the replay gate failed")
 
     def start_ingest(self) -> None:

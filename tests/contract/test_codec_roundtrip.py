@@ -18,7 +18,7 @@ from hypothesis.extra import numpy as hnp
 
 from proto.actions import ACTION_DIM
 from proto.codec import Message, decode
-from proto.control import EvalReport, Heartbeat, ReplayGate
+from proto.control import EpisodeAck, EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
 from proto.msgpack_wire import ProtocolError, pack
 from proto.specs import Arr, Bool, Float, Int, ListOf, MapOf, Opt, Spec, Str
@@ -175,6 +175,7 @@ STRATEGIES: dict[str, st.SearchStrategy] = {
     "Heartbeat": message_strategy(Heartbeat),
     "EvalReport": message_strategy(EvalReport),
     "ReplayGate": message_strategy(ReplayGate),
+    "EpisodeAck": message_strategy(EpisodeAck),
 }
 
 

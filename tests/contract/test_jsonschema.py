@@ -22,7 +22,7 @@ import pytest
 
 import proto
 from proto.codec import Message, decode, field_table
-from proto.control import EvalReport, Heartbeat, ReplayGate
+from proto.control import EpisodeAck, EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
 from proto.jsonschema import DIALECT, NDARRAY_KEYWORD, json_schema, json_schema_text
 from proto.msgpack_wire import ProtocolError, pack
@@ -107,6 +107,15 @@ SAMPLES: dict[str, Callable[[], list[Message]]] = {
             replay_transitions=1100,
             created_at=1_700_000_000.0,
         )
+    ],
+    "EpisodeAck": lambda: [
+        EpisodeAck(learner_id="learner-0", run_id="run-0", episode_ids=[], created_at=1_700_000_000.0),
+        EpisodeAck(
+            learner_id="learner-0",
+            run_id="run-0",
+            episode_ids=["actor-0-0-0", "actor-1-1000000-3"],
+            created_at=1_700_000_000.0,
+        ),
     ],
     "Heartbeat": lambda: [_heartbeat(), dataclasses.replace(_heartbeat(), counters={}, detail="x" * 512)],
     "WeightsAnnouncement": lambda: [build_weights(1).announcement(byte_size=123)],

@@ -15,6 +15,7 @@ from proto.codec import Message
 from proto.topics import (
     ALIVE,
     CHUNK,
+    EPISODE_ACKS,
     EPISODES_AUGMENTED,
     EPISODES_RAW,
     EVAL_REPORTS,
@@ -30,6 +31,7 @@ from proto.topics import (
     TopicKeyError,
     by_name,
     key,
+    may_write,
     parse,
     pattern,
 )
@@ -102,6 +104,7 @@ def test_topics_are_distinct() -> None:
         (WEIGHTS_LATEST, "default", "mea/v1/default/weights/latest/*"),
         (EVAL_REPORTS, "default", "mea/v1/default/eval/reports/*"),
         (REPLAY_GATE, "default", "mea/v1/default/learner/gate/*"),
+        (EPISODE_ACKS, "default", "mea/v1/default/learner/acks/*"),
         (STATUS, "run-1", "mea/v1/run-1/status/*/*"),
         (ALIVE, "default", "mea/v1/default/alive/*/*"),
     ],
@@ -118,6 +121,7 @@ def test_every_topic_has_a_pattern_test() -> None:
         WEIGHTS_LATEST,
         EVAL_REPORTS,
         REPLAY_GATE,
+        EPISODE_ACKS,
         STATUS,
         ALIVE,
     }
@@ -209,6 +213,7 @@ def test_message_type_per_topic() -> None:
         "eval_reports": "EvalReport",
         "replay_gate": "ReplayGate",
         "status": "Heartbeat",
+        "episode_acks": "EpisodeAck",
     }
     assert {t.name: t.message.TYPE for t in TOPICS if t.message is not None} == expected
     assert WEIGHTS_LATEST.kind is Kind.QUERY and ALIVE.kind is Kind.LIVELINESS
@@ -282,3 +287,30 @@ def test_docs_refuses_a_readme_without_markers(tmp_path: Path) -> None:
 def test_topics_module_lists_every_topic() -> None:
     declared = [v for v in vars(topics).values() if isinstance(v, Topic)]
     assert set(declared) == set(TOPICS)
+
+
+@pytest.mark.parametrize(
+    ("topic", "parts", "sender", "allowed"),
+    [
+        (EPISODES_RAW, {"source": "actor-0"}, ("actor", "actor-0"), True),
+        (EPISODES_RAW, {"source": "actor-0"}, ("actor", "actor-1"), False),  # as another actor
+        (EPISODES_RAW, {"source": "learner-0"}, ("learner", "learner-0"), False),  # wrong kind
+        (EPISODES_AUGMENTED, {"source": "augmenter-0"}, ("augmenter", "augmenter-0"), True),
+        (EPISODES_AUGMENTED, {"source": "actor-0"}, ("actor", "actor-0"), False),
+        (WEIGHTS_ANNOUNCE, {"source": "learner-0"}, ("learner", "learner-0"), True),
+        (WEIGHTS_ANNOUNCE, {"source": "actor-0"}, ("actor", "actor-0"), False),
+        (WEIGHTS_LATEST, {"source": "learner-0"}, ("evaluator", "learner-0"), False),
+        (REPLAY_GATE, {"source": "learner-0"}, ("learner", "learner-0"), True),
+        (REPLAY_GATE, {"source": "learner-0"}, ("actor", "learner-0"), False),
+        (EPISODE_ACKS, {"source": "learner-0"}, ("learner", "learner-0"), True),
+        (EPISODE_ACKS, {"source": "augmenter-0"}, ("augmenter", "augmenter-0"), False),
+        (EVAL_REPORTS, {"source": "evaluator-0"}, ("evaluator", "evaluator-0"), True),
+        (EVAL_REPORTS, {"source": "evaluator-0"}, ("learner", "evaluator-0"), False),
+        (STATUS, {"service": "actor", "instance": "actor-0"}, ("actor", "actor-0"), True),
+        (STATUS, {"service": "learner", "instance": "learner-0"}, ("actor", "actor-0"), False),
+        (STATUS, {"service": "actor", "instance": "actor-1"}, ("actor", "actor-0"), False),
+    ],
+)
+def test_who_may_write(topic: Topic, parts: dict, sender: tuple[str, str], allowed: bool) -> None:
+    why = may_write(topic, parts, *sender)
+    assert (why is None) is allowed, why

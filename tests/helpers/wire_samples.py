@@ -18,7 +18,7 @@ import numpy as np
 import proto
 from proto.actions import ACTION_DIM
 from proto.codec import Message
-from proto.control import SERVICES, STATES, EvalReport, Heartbeat, ReplayGate
+from proto.control import ACK_WINDOW, SERVICES, STATES, EpisodeAck, EvalReport, Heartbeat, ReplayGate
 from proto.episode import AUGMENTATION_KINDS, POLICY_KINDS, TASKS, Augmentation, Episode
 from proto.weights import ALGORITHMS, WeightsAnnouncement, WeightsBlob
 
@@ -193,6 +193,15 @@ def gen_replay_gate(rng: np.random.Generator) -> ReplayGate:
     )
 
 
+def gen_episode_ack(rng: np.random.Generator) -> EpisodeAck:
+    return EpisodeAck(
+        learner_id=rand_id(rng),
+        run_id=rand_id(rng),
+        episode_ids=[rand_id(rng) for _ in range(int(rng.integers(0, ACK_WINDOW + 1)))],
+        created_at=rand_time(rng),
+    )
+
+
 GENERATORS: dict[str, Callable[[np.random.Generator], Message]] = {
     "Augmentation": gen_augmentation,
     "Episode": gen_episode,
@@ -201,6 +210,7 @@ GENERATORS: dict[str, Callable[[np.random.Generator], Message]] = {
     "Heartbeat": gen_heartbeat,
     "EvalReport": gen_eval_report,
     "ReplayGate": gen_replay_gate,
+    "EpisodeAck": gen_episode_ack,
 }
 
 

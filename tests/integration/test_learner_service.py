@@ -135,3 +135,34 @@ def test_a_state_critic_learner_trains_on_privileged_rows_and_rejects_episodes_w
     last = [d.message for d in status.drain()][-1].counters
     assert last["updates"] == 4 and last["rejected"] == 1 and last["env_steps"] == 20
     assert np.isfinite(last["critic_loss"])
+
+
+def test_the_learner_acknowledges_every_raw_episode_and_stores_a_repeat_once(tmp_path):
+    from proto.topics import EPISODE_ACKS
+    from services.learner import checkpoint
+
+    cfg = tiny_learner_config(
+        tmp_path, svc(), samples_per_insert=0.5, min_steps=20, error_buffer=5.0, max_updates=2
+    )
+    hub = Hub()
+    observer = InProcBus(hub)
+    acks = observer.subscribe(EPISODE_ACKS, capacity=16)
+    status = observer.subscribe(STATUS, capacity=256, service="learner")
+    thread, result = start_learner(cfg, hub, observer)
+    a, b = learner_episode(1, T=10), learner_episode(2, T=10)
+    copy = learner_episode(3, T=10, copy_of=a.episode_id)
+    for ep in (a, copy, a, copy):  # a repeated delivery (e.g. an actor publishing again after a restart)
+        observer.publish(EPISODES_AUGMENTED, ep, source="augmenter-0")
+    acked = wait_for(
+        lambda: [d.message for d in acks.drain() if a.episode_id in d.message.episode_ids], 10, "an ack"
+    )
+    assert acked[-1].episode_ids == [a.episode_id, a.episode_id]  # raw ids only, each delivery
+    assert acked[-1].learner_id == "learner-t"
+    observer.publish(EPISODES_AUGMENTED, b, source="augmenter-0")  # 20 raw steps: 5 updates allowed, 2 run
+    thread.join(timeout=60)
+    assert not thread.is_alive() and result["rc"] == 0
+    last = [d.message for d in status.drain()][-1].counters
+    assert last["env_steps"] == 20 and last["episodes_in"] == 3 and last["rejected"] == 2
+    _, replay, _ = checkpoint.load(tmp_path / "checkpoints")
+    ids = list(replay["episode_id"])
+    assert sorted(ids) == sorted([a.episode_id, copy.episode_id, b.episode_id])  # each exactly once

@@ -20,7 +20,8 @@ from typing import Protocol
 
 from proto.codec import Message
 from proto.msgpack_wire import DEFAULT_LIMITS, Limits, ProtocolError
-from proto.topics import ALIVE, Kind, Topic, key, parse
+from proto.seal import is_sealed, seal, unseal
+from proto.topics import ALIVE, Kind, Topic, key, may_write, parse
 
 log = logging.getLogger(__name__)
 
@@ -33,12 +34,24 @@ class Handle(Protocol):
 
 @dataclass(frozen=True)
 class Delivery:
-    """One decoded message and the key it arrived on."""
+    """One decoded message, the key it arrived on and, when sealed, who sent it
+    (``<service>/<instance>``; verified when the bus holds the run's key)."""
 
     key: str
     parts: dict[str, str]
     message: Message
     size: int
+    sender: str = ""
+
+
+@dataclass(frozen=True)
+class Credentials:
+    """The run's key and this service's identity: with them a bus seals everything it sends and
+    accepts only messages sealed with the same key by a service allowed to write the topic."""
+
+    key: bytes = field(repr=False)
+    service: str
+    instance: str
 
 
 @dataclass
@@ -50,6 +63,8 @@ class BusStats:
     received: Counter = field(default_factory=Counter)
     received_bytes: Counter = field(default_factory=Counter)
     bad: Counter = field(default_factory=Counter)
+    unauthenticated: Counter = field(default_factory=Counter)
+    """Of ``bad``: refused because the seal or the sender was not valid for this run."""
 
 
 class Subscription:
@@ -80,6 +95,9 @@ class Subscription:
     # transport side -------------------------------------------------------------------------
     def push(self, key_expr: str, payload: bytes) -> None:
         if self._latest:
+            # checked before it may replace the sender's newest: a forgery must not displace a real one
+            if not self._bus.admit(self._topic, key_expr, payload):
+                return
             with self._cond:
                 if self._newest.pop(key_expr, None) is not None:
                     self.replaced += 1
@@ -147,6 +165,7 @@ class AliveWatch:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._alive: set[tuple[str, str]] = set()
+        self._came_alive: dict[tuple[str, str], float] = {}  # who -> monotonic time its token appeared
         self.events: queue.Queue[tuple[str, str, bool]] = queue.Queue()
         self._undeclare: Callable[[], None] | None = None
 
@@ -160,7 +179,15 @@ class AliveWatch:
         who = (parts["service"], parts["instance"])
         with self._lock:
             (self._alive.add if alive else self._alive.discard)(who)
+            if alive:
+                self._came_alive[who] = time.monotonic()
         self.events.put((*who, alive))
+
+    def came_alive(self, services: tuple[str, ...]) -> float | None:
+        """``time.monotonic()`` when the newest token of one of ``services`` appeared (None: never)."""
+        with self._lock:
+            times = [t for (svc, _), t in self._came_alive.items() if svc in services]
+        return max(times, default=None)
 
     def alive(self) -> set[tuple[str, str]]:
         with self._lock:
@@ -211,6 +238,12 @@ class Bus(ABC):
         self.stats = BusStats()
         self.on_bad_message: BadMessageHook | None = None
         self._reject_log = LogLimiter()
+        self.credentials: Credentials | None = None
+
+    def authenticate(self, credentials: Credentials) -> None:
+        """From now on seal what this bus sends and accept only what the run's services sealed
+        (messages already queued are checked when read, so nothing slips in before this call)."""
+        self.credentials = credentials
 
     # helpers shared by implementations -------------------------------------------------------
     def key(self, topic: Topic, **parts: str) -> str:
@@ -220,12 +253,54 @@ class Bus(ABC):
         full = {p: parts.get(p, "*") for p in topic.placeholders}
         return key(topic, self.namespace, **full)
 
-    def encode_for(self, topic: Topic, msg: Message | bytes) -> bytes:
+    def encode_for(self, topic: Topic, msg: Message | bytes, key_expr: str) -> bytes:
         if isinstance(msg, (bytes, bytearray)):
-            return bytes(msg)  # pre-encoded (e.g. a weights blob served many times)
-        if topic.message is None or not isinstance(msg, topic.message):
+            body = bytes(msg)  # pre-encoded (e.g. a weights blob served many times)
+        elif topic.message is None or not isinstance(msg, topic.message):
             raise TypeError(f"{topic.name} carries {topic.message}, not {type(msg).__name__}")
-        return msg.encode()
+        else:
+            body = msg.encode()
+        c = self.credentials
+        return body if c is None else seal(c.key, key_expr, c.service, c.instance, body)
+
+    def _open(self, topic: Topic, key_expr: str, parts: dict[str, str], payload: bytes) -> tuple[str, bytes]:
+        """(sender, body): with credentials the seal must verify and the sender may write here;
+        without, a seal is only read (the sender is then unverified)."""
+        c = self.credentials
+        if c is None and not is_sealed(payload):
+            return "", payload
+        s = unseal(None if c is None else c.key, key_expr, payload)
+        if c is not None and (why := may_write(topic, parts, s.service, s.instance)) is not None:
+            raise ProtocolError("<sender>", why)
+        return s.sender, s.body
+
+    def admit(self, topic: Topic, key_expr: str, payload: bytes) -> bool:
+        """Whether a payload is sealed for this run by a sender allowed here (always True without
+        credentials); a refusal is counted like any bad message. Cheap for small messages."""
+        if self.credentials is None:
+            return True
+        try:
+            if len(payload) > topic.max_bytes:
+                raise ProtocolError(
+                    "<message>", f"{len(payload)} bytes over the {topic.name} cap {topic.max_bytes}"
+                )
+            _, _, parts = parse(key_expr)
+            self._open(topic, key_expr, parts, payload)
+        except (ProtocolError, ValueError) as exc:
+            self._reject(topic, key_expr, exc)
+            return False
+        return True
+
+    def _reject(self, topic: Topic, key_expr: str, exc: Exception) -> None:
+        err = exc if isinstance(exc, ProtocolError) else ProtocolError("<key>", str(exc))
+        self.stats.bad[topic.name] += 1
+        if err.field in ("<seal>", "<sender>"):
+            self.stats.unauthenticated[topic.name] += 1
+        if self._reject_log.allow(topic.name):  # counts stay exact; the log is rate-limited
+            log.warning("rejected message", extra={"topic": topic.name, "key": key_expr, "error": str(err),
+                                                   "rejected_total": self.stats.bad[topic.name]})  # fmt: skip
+        if self.on_bad_message is not None:
+            self.on_bad_message(topic, key_expr, err)
 
     def decode_delivery(self, topic: Topic, key_expr: str, payload: bytes) -> Delivery | None:
         try:
@@ -234,19 +309,14 @@ class Bus(ABC):
                     "<message>", f"{len(payload)} bytes over the {topic.name} cap {topic.max_bytes}"
                 )
             _, _, parts = parse(key_expr)
-            msg = topic.message.decode(payload, self.limits)  # type: ignore[union-attr]
+            sender, body = self._open(topic, key_expr, parts, payload)
+            msg = topic.message.decode(body, self.limits)  # type: ignore[union-attr]
         except (ProtocolError, ValueError) as exc:
-            err = exc if isinstance(exc, ProtocolError) else ProtocolError("<key>", str(exc))
-            self.stats.bad[topic.name] += 1
-            if self._reject_log.allow(topic.name):  # counts stay exact; the log is rate-limited
-                log.warning("rejected message", extra={"topic": topic.name, "key": key_expr, "error": str(err),
-                                                       "rejected_total": self.stats.bad[topic.name]})  # fmt: skip
-            if self.on_bad_message is not None:
-                self.on_bad_message(topic, key_expr, err)
+            self._reject(topic, key_expr, exc)
             return None
         self.stats.received[topic.name] += 1
         self.stats.received_bytes[topic.name] += len(payload)
-        return Delivery(key_expr, parts, msg, len(payload))
+        return Delivery(key_expr, parts, msg, len(payload), sender)
 
     def _count_published(self, topic: Topic, n: int) -> None:
         self.stats.published[topic.name] += 1

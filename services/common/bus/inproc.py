@@ -34,7 +34,7 @@ class Hub:
 
     lock: threading.Lock = field(default_factory=threading.Lock)
     subs: list[tuple[str, Subscription]] = field(default_factory=list)
-    queryables: list[tuple[str, QueryHandler]] = field(default_factory=list)
+    queryables: list[tuple[str, QueryHandler, InProcBus]] = field(default_factory=list)
     tokens: dict[str, int] = field(default_factory=dict)
     watches: list[tuple[str, AliveWatch]] = field(default_factory=list)
 
@@ -58,7 +58,7 @@ class InProcBus(Bus):
     def publish(self, topic: Topic, msg: Message | bytes, **parts: str) -> int:
         self._expect(topic, Kind.PUBSUB)
         key_expr = self.key(topic, **parts)
-        payload = self.encode_for(topic, msg)
+        payload = self.encode_for(topic, msg, key_expr)
         with self.hub.lock:
             targets = [s for pat, s in self.hub.subs if key_matches(pat, key_expr)]
         for s in targets:
@@ -84,9 +84,9 @@ class InProcBus(Bus):
 
     def serve(self, topic: Topic, handler: QueryHandler, **parts: str):
         self._expect(topic, Kind.QUERY)
-        entry = (self.key(topic, **parts), handler)
+        entry = (self.key(topic, **parts), handler, self)
         with self.hub.lock:
-            if any(k == entry[0] for k, _ in self.hub.queryables):
+            if any(k == entry[0] for k, _, _ in self.hub.queryables):
                 raise ValueError(f"{entry[0]} is already served")
             self.hub.queryables.append(entry)
 
@@ -105,8 +105,8 @@ class InProcBus(Bus):
         self._expect(topic, Kind.QUERY)
         pattern = self.wildcard_key(topic, parts)
         with self.hub.lock:
-            targets = [(k, h) for k, h in self.hub.queryables if key_matches(pattern, k)]
-        for key_expr, handler in targets:
+            targets = [(k, h, b) for k, h, b in self.hub.queryables if key_matches(pattern, k)]
+        for key_expr, handler, server in targets:
             try:
                 reply = handler(dict(params or {}))
             except Exception:  # noqa: BLE001 - same as Zenoh: a failing server answers nothing
@@ -114,7 +114,7 @@ class InProcBus(Bus):
                 continue
             if reply is None:
                 continue
-            payload = self.encode_for(topic, reply)
+            payload = server.encode_for(topic, reply, key_expr)  # sealed by the server, as over Zenoh
             delivery = self.decode_delivery(topic, key_expr, payload)
             if delivery is not None:
                 return delivery

@@ -118,7 +118,7 @@ class ZenohBus(Bus):
     def publish(self, topic: Topic, msg: Message | bytes, **parts: str) -> int:
         self._expect(topic, Kind.PUBSUB)
         key_expr = self.key(topic, **parts)
-        payload = self.encode_for(topic, msg)
+        payload = self.encode_for(topic, msg, key_expr)
         with self._pub_lock:
             pub = self._publishers.get(key_expr)
             if pub is None:
@@ -185,7 +185,7 @@ class ZenohBus(Bus):
                 handler = self._servers.get(key_expr)
                 reply = handler(params) if handler is not None else None
                 if reply is not None:
-                    payload = self.encode_for(topic, reply)
+                    payload = self.encode_for(topic, reply, key_expr)
                     q.reply(key_expr, payload)  # replies travel with the query's QoS
                     self._count_published(topic, len(payload))
             except Exception:  # noqa: BLE001 - a bad query must not kill the server thread
