@@ -34,7 +34,7 @@ from services.common import config, logs, run_key
 from services.common.bus.base import Bus, Credentials
 from services.common.bus.inproc import Hub, InProcBus
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
-from services.common.mcap_io import McapRecorder
+from services.common.mcap_io import SegmentedRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
 from services.plan import ChildSpec, child_specs, restarted
@@ -96,12 +96,17 @@ def stop_children(procs: dict, grace: float) -> None:
 
 
 class EpisodeRecorder:
-    """Writes every raw episode the router sees to an MCAP file, in a thread of the launcher."""
+    """Writes every raw episode the router sees to numbered MCAP segments in ``directory``
+    (``SegmentedRecorder``: rolled by size or age, the oldest deleted beyond a budget), in a thread
+    of the launcher."""
 
-    def __init__(self, router: Bus, path: Path, metadata: dict[str, str]) -> None:
+    def __init__(self, router: Bus, directory: Path, run: int, metadata: dict[str, str], *,
+                 segment_bytes: int = 0, segment_seconds: float = 0.0, max_bytes: int = 0) -> None:  # fmt: skip
         self.sub = router.subscribe(EPISODES_RAW, capacity=256)
         self.written = 0
-        self.recorder = McapRecorder(path, metadata=metadata, compression="zstd")
+        self.recorder = SegmentedRecorder(directory, run, metadata=metadata, compression="zstd",
+                                          segment_bytes=segment_bytes, segment_seconds=segment_seconds,
+                                          max_bytes=max_bytes)  # fmt: skip
         self._stop = False
         self.thread = threading.Thread(target=self._loop, name="recorder", daemon=True)
         self.thread.start()
@@ -109,21 +114,25 @@ class EpisodeRecorder:
     def _loop(self) -> None:
         while not self._stop:
             d = self.sub.recv(timeout=0.25)
-            if d is not None:
-                try:
-                    self.recorder.write(d.message, topic=d.key)
-                    self.written += 1
-                except Exception:  # noqa: BLE001 - a recording problem must not stop training
-                    log.exception("recording an episode failed")
+            try:
+                if d is None:
+                    self.recorder.tick()  # an idle segment still ends on time
+                    continue
+                self.recorder.write(d.message, topic=d.key)
+                self.written += 1
+            except Exception:  # noqa: BLE001 - a recording problem must not stop training
+                log.exception("recording an episode failed")
 
     def close(self) -> None:
         self.sub.close()
         self._stop = True
         self.thread.join(timeout=5.0)
-        for d in self.sub.drain():  # what was already received is still written
-            self.recorder.write(d.message, topic=d.key)
-            self.written += 1
-        self.recorder.close()
+        try:
+            for d in self.sub.drain():  # what was already received is still written
+                self.recorder.write(d.message, topic=d.key)
+                self.written += 1
+        finally:
+            self.recorder.close()
 
 
 def _launcher_metrics(cfg: RunConfig, router: Bus) -> ServiceMetrics:
@@ -327,7 +336,10 @@ def run(cfg: RunConfig) -> int:
     recorder = None
     if cfg.record:
         meta = {"task": cfg.task, "variant": cfg.variant, "seed": str(cfg.seed), "resumes": str(cfg.resumes)}
-        recorder = EpisodeRecorder(router, run_dir / "episodes" / f"raw-{cfg.resumes}.mcap", meta)
+        recorder = EpisodeRecorder(router, run_dir / "episodes", cfg.resumes, meta,
+                                   segment_bytes=cfg.recording_segment_bytes,
+                                   segment_seconds=cfg.recording_segment_seconds,
+                                   max_bytes=cfg.recording_max_bytes)  # fmt: skip
     board = StatusBoard(specs, budget=cfg.env_steps, bus=router)
     procs: dict = {}
     failed = False

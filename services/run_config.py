@@ -50,7 +50,15 @@ class RunConfig:
     """Episodes of the evaluation at the env-step budget (the same held-out seed sequence, its first
     final_eval_episodes seeds)."""
     record: bool = True
-    """Record every raw episode to RUN_DIR/episodes/raw-<n>.mcap."""
+    """Record every raw episode to RUN_DIR/episodes/raw-<n>-<k>.mcap (n: resume count; k: segment,
+    each a complete MCAP file)."""
+    recording_segment_bytes: int = 256 * 2**20
+    """Start the next recording segment once the open one holds this many bytes (0: no size limit)."""
+    recording_segment_seconds: float = 3600.0
+    """Start the next recording segment once the open one has been open this long (0: no age limit)."""
+    recording_max_bytes: int = 0
+    """Delete the oldest finished recording segments (every resume's) while they take more than this
+    many bytes; the newest finished one and the open one always stay. 0: keep everything."""
     follow_gate: bool = True
     """Actors wait for the learner's replay gate (off: actors run flat out; for benchmarks)."""
     resume: Path | None = None
@@ -125,6 +133,8 @@ class RunConfig:
             raise ValueError("actors must be >= 0")
         if self.restart_limit < 0 or self.restart_window_seconds <= 0:
             raise ValueError("restart_limit must be >= 0 and restart_window_seconds > 0")
+        if min(self.recording_segment_bytes, self.recording_segment_seconds, self.recording_max_bytes) < 0:
+            raise ValueError("recording_segment_bytes, _seconds and recording_max_bytes must be >= 0")
         if self.success_rotations is not None and self.success_rotations < 0:
             raise ValueError("success_rotations must be >= 0")
         if self.variant not in VARIANTS:

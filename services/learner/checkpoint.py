@@ -1,11 +1,20 @@
-"""Atomic learner checkpoints, loaded without unpickling arbitrary objects.
+"""Atomic learner checkpoints, loaded without unpickling arbitrary objects, the newest few kept.
 
-One file, ``<run_dir>/checkpoints/learner.pt``, holds everything a resumed learner needs: networks,
-optimisers, log alpha, replay contents, rate-limiter state, counters, RNG states and the weights
-version/run id (the version lineage). It is written with ``torch.save`` to a temporary file in the
-same directory, fsynced, then renamed over the previous one (``os.replace`` is atomic on POSIX):
-a crash mid-write leaves the previous checkpoint intact. The previous file is kept as
-``learner.prev.pt`` so one bad disk block does not lose the run.
+Each checkpoint is one file, ``<run_dir>/checkpoints/learner-<n>.pt`` (``n`` counts up from 1), and
+holds everything a resumed learner needs: networks, optimisers, log alpha, replay contents,
+rate-limiter state, counters, RNG states and the weights version/run id (the version lineage). It is
+written with ``torch.save`` to a temporary file in the same directory (``.learner.pt.tmp``, one name,
+so a crash mid-write leaves at most one), fsynced, then renamed to its name (``os.replace`` is atomic
+on POSIX): a crash mid-write leaves the earlier checkpoints intact.
+
+Retention: once the new file is in place, the oldest go so that at most ``keep`` remain and, with a
+``max_bytes`` budget, they take at most that much together (``services.common.retention.to_delete``);
+the newest is never deleted, nor the file being written (it is not a checkpoint until renamed). The
+replay's contents dominate the size, which grows as it fills (hundreds of MB with the paper preset),
+and a write needs room for one more file until the oldest goes. ``load`` tries the checkpoints
+newest first and falls back to the next if one is unreadable, so one bad disk block does not lose
+the run. Checkpoints from before numbering (``learner.pt``, then ``learner.prev.pt``) count
+as older than every numbered one: they are read and, in time, deleted like them.
 
 Loading uses ``torch.load(weights_only=True)``: only tensors, numbers, strings, lists and dicts can
 come back, never arbitrary Python objects. Numpy arrays (replay) travel as tensors and numpy's RNG
@@ -14,12 +23,15 @@ state as a JSON string.
 What goes in (``save_trainer``) and how it comes back into a trainer (``restore_trainer``) is
 assembled here too, beside the file format, so the two cannot drift apart. ``due`` says when the
 service writes one: every ``checkpoint_minutes`` and every ``checkpoint_every`` updates, if set.
+``published.json`` beside them (the lineage of announced versions) is never rotated.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,11 +40,18 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from services.common import retention
+
 if TYPE_CHECKING:
     from services.learner.core.trainer import Trainer
 
-FILE = "learner.pt"
-PREVIOUS = "learner.prev.pt"
+log = logging.getLogger(__name__)
+STEM, SUFFIX = "learner", ".pt"
+TMP = f".{STEM}{SUFFIX}.tmp"
+LEGACY = ("learner.pt", "learner.prev.pt")
+"""Names of the single checkpoint and its previous copy from before numbering, newest first."""
+KEEP = 3
+"""Checkpoints kept by default (``LearnerConfig.keep_checkpoints``)."""
 FORMAT = 1
 PUBLISHED = "published.json"
 """The newest version announced (run id and number), written before each announcement: a learner
@@ -70,24 +89,81 @@ def restore_rng(state: dict, np_rng: np.random.Generator) -> None:
     np_rng.bit_generator.state = json.loads(state["numpy"])
 
 
-def save(directory: Path, *, learner: dict, replay: dict, meta: dict) -> Path:
-    """Write a checkpoint atomically. ``learner`` holds tensors (state dicts), ``replay`` numpy arrays
-    and plain values, ``meta`` JSON-able values (version, run id, counters, config)."""
+def file_name(n: int) -> str:
+    """The name of checkpoint number ``n`` (>= 1): ``learner-<n>.pt``, zero-padded to 6 digits."""
+    return f"{STEM}-{n:06d}{SUFFIX}"
+
+
+def _number(name: str) -> int | None:
+    """The number of a checkpoint's file name; legacy names count below every numbered one."""
+    if name in LEGACY:
+        return -LEGACY.index(name) - 1
+    m = re.fullmatch(re.escape(STEM) + r"-(\d+)" + re.escape(SUFFIX), name)
+    return None if m is None else int(m.group(1))
+
+
+def checkpoints(directory: Path) -> list[Path]:
+    """The checkpoint files in ``directory``, newest first (by number, numerically); never the
+    temporary file of one being written."""
+    try:
+        names = os.listdir(directory)
+    except FileNotFoundError:
+        return []
+    keyed = [(n, name) for name in names if (n := _number(name)) is not None]
+    return [directory / name for _, name in sorted(keyed, reverse=True)]
+
+
+def prune(directory: Path, keep: int = KEEP, max_bytes: int = 0) -> list[Path]:
+    """Delete the oldest checkpoints beyond ``keep`` files and ``max_bytes`` bytes in all (0: no
+    budget); the newest always stays. Returns the deleted paths."""
+    if keep < 1:
+        raise ValueError(f"keep must be >= 1, got {keep}")
+    files = []
+    for path in reversed(checkpoints(directory)):  # oldest first
+        try:
+            files.append((path.name, path.stat().st_size))
+        except FileNotFoundError:
+            continue
+    deleted = []
+    for name in retention.to_delete(files, keep=keep, max_bytes=max_bytes):
+        try:
+            (directory / name).unlink()
+        except FileNotFoundError:
+            continue
+        except OSError as exc:
+            log.warning(
+                "old checkpoint not deleted", extra={"path": str(directory / name), "error": str(exc)}
+            )
+            continue
+        deleted.append(directory / name)
+    if deleted:
+        log.info("old checkpoints deleted", extra={"files": ",".join(p.name for p in deleted)})
+    return deleted
+
+
+def save(
+    directory: Path, *, learner: dict, replay: dict, meta: dict, keep: int = KEEP, max_bytes: int = 0
+) -> Path:
+    """Write a checkpoint atomically, as the newest, then apply the retention (``prune``).
+    ``learner`` holds tensors (state dicts), ``replay`` numpy arrays and plain values, ``meta``
+    JSON-able values (version, run id, counters, config)."""
+    if keep < 1:
+        raise ValueError(f"keep must be >= 1, got {keep}")
     directory.mkdir(parents=True, exist_ok=True)
-    path, tmp = directory / FILE, directory / f".{FILE}.tmp"
+    number = 1 + max([0, *(_number(p.name) or 0 for p in checkpoints(directory))])
+    path, tmp = directory / file_name(number), directory / TMP
     payload = {"format": FORMAT, "learner": learner, "replay": _to_torch(replay), "meta": json.dumps(meta)}
     with open(tmp, "wb") as f:
         torch.save(payload, f)
         f.flush()
         os.fsync(f.fileno())
-    if path.exists():
-        os.replace(path, directory / PREVIOUS)
     os.replace(tmp, path)
     dir_fd = os.open(directory, os.O_RDONLY)
     try:
         os.fsync(dir_fd)
     finally:
         os.close(dir_fd)
+    prune(directory, keep, max_bytes)
     return path
 
 
@@ -96,17 +172,17 @@ class CheckpointError(RuntimeError):
 
 
 def load(directory: Path) -> tuple[dict, dict, dict]:
-    """(learner state, replay state as numpy, meta); falls back to the previous file if the newest is
-    unreadable."""
+    """(learner state, replay state as numpy, meta) of the newest readable checkpoint: one that is
+    unreadable is reported and the next older one tried."""
     errors = []
-    for name in (FILE, PREVIOUS):
-        path = directory / name
-        if not path.exists():
-            continue
+    for path in checkpoints(directory):
         try:
             payload = torch.load(path, map_location="cpu", weights_only=True)
             if payload.get("format") != FORMAT:
                 raise CheckpointError(f"{path}: format {payload.get('format')!r}, expected {FORMAT}")
+            if errors:
+                log.warning("newer checkpoints unreadable; resuming an older one",
+                            extra={"path": str(path), "errors": "; ".join(errors)[:1000]})  # fmt: skip
             return payload["learner"], _to_numpy(payload["replay"]), json.loads(payload["meta"])
         except Exception as exc:  # noqa: BLE001 - report every candidate, then give up
             errors.append(f"{path}: {exc}")
@@ -154,7 +230,7 @@ def continued_lineage(
 
 
 def exists(directory: Path) -> bool:
-    return (directory / FILE).exists() or (directory / PREVIOUS).exists()
+    return bool(checkpoints(directory))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -179,9 +255,18 @@ def due(seconds_since_last: float, updates: int, minutes: float, every: int) -> 
     return by_time or (every > 0 and updates > 0 and updates % every == 0)
 
 
-def save_trainer(directory: Path, trainer: Trainer, lineage: Lineage, config: dict[str, Any]) -> Path:
+def save_trainer(
+    directory: Path,
+    trainer: Trainer,
+    lineage: Lineage,
+    config: dict[str, Any],
+    *,
+    keep: int = KEEP,
+    max_bytes: int = 0,
+) -> Path:
     """Write ``trainer``'s whole state (networks, optimisers, alpha, RNG states, replay, limiter) with
-    ``lineage``, the env steps and ``config`` (the resolved settings, JSON-able) as metadata.
+    ``lineage``, the env steps and ``config`` (the resolved settings, JSON-able) as metadata; keep
+    the newest ``keep`` checkpoints within ``max_bytes`` (``save``).
     The caller keeps the replay and the limiter still meanwhile."""
     meta = {
         "version": lineage.version,
@@ -193,7 +278,8 @@ def save_trainer(directory: Path, trainer: Trainer, lineage: Lineage, config: di
         "saved_at": time.time(),
     }
     learner = {"sac": trainer.sac.state_dict(), "rng": rng_state(trainer.rng)}
-    return save(directory, learner=learner, replay=trainer.replay.state_dict(), meta=meta)
+    replay = trainer.replay.state_dict()
+    return save(directory, learner=learner, replay=replay, meta=meta, keep=keep, max_bytes=max_bytes)
 
 
 def restore_trainer(directory: Path, trainer: Trainer) -> Lineage:

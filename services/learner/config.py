@@ -68,6 +68,12 @@ class LearnerConfig:
     """Checkpoint period (and always on shutdown); 0 disables periodic checkpoints."""
     checkpoint_every: int = 0
     """Also checkpoint every this many updates (0: off)."""
+    keep_checkpoints: int = 3
+    """Checkpoints kept (the newest; at least 1): --resume falls back to an older one if the newest
+    is unreadable. Each holds the replay's contents (hundreds of MB with the paper preset)."""
+    checkpoint_max_bytes: int = 0
+    """Also delete the oldest checkpoints while they take more than this many bytes in all; the
+    newest always stays (0: no budget, keep_checkpoints alone)."""
     run_dir: Path = Path("runs/learner")
     """Directory for the resolved config and checkpoints/."""
     run_id: str = ""
@@ -101,6 +107,8 @@ class LearnerConfig:
         for name in ("batch_size", "seq_len", "publish_every", "queue"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
+        if self.keep_checkpoints < 1 or self.checkpoint_max_bytes < 0:
+            raise ValueError("keep_checkpoints must be >= 1 and checkpoint_max_bytes >= 0")
         if self.replay_capacity < self.seq_len:
             raise ValueError("replay_capacity must hold at least one episode (>= seq_len)")
         if not 0.0 <= self.demo_fraction <= 1.0:

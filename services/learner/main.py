@@ -18,11 +18,12 @@ Threads
 Weights and checkpoints
     Version 0 (random initial weights) is published at start so that actors can act at once. Every
     ``checkpoint_minutes`` (and every ``checkpoint_every`` updates if set) and on SIGTERM the whole
-    state is checkpointed atomically; ``--resume`` continues from it and keeps the run id: one version
-    lineage. Each version is recorded as announced (``checkpoints/published.json``) before it goes
-    out, so a learner killed after its checkpoint resumes past every version it announced since: no
-    version number is ever announced twice. On SIGTERM a last version goes out only if the weights
-    changed since the newest one.
+    state is checkpointed atomically (the newest ``keep_checkpoints`` kept, within
+    ``checkpoint_max_bytes`` if set); ``--resume`` continues from the newest readable one and keeps
+    the run id: one version lineage. Each version is recorded as announced
+    (``checkpoints/published.json``) before it goes out, so a learner killed after its checkpoint
+    resumes past every version it announced since: no version number is ever announced twice. On
+    SIGTERM a last version goes out only if the weights changed since the newest one.
 
 Bad input
     An episode the replay refuses (no policy images, wrong shape, too long) is logged, counted in
@@ -181,10 +182,13 @@ class Learner:
             self.save_checkpoint()
 
     def save_checkpoint(self) -> Path:
-        t0 = time.perf_counter()
+        t0, cfg = time.perf_counter(), self.cfg
         lineage = checkpoint.Lineage(self.version, self.run_id, self.last)
+        keep = {"keep": cfg.keep_checkpoints, "max_bytes": cfg.checkpoint_max_bytes}
         with self.lock:
-            path = checkpoint.save_trainer(self.ckpt_dir, self.trainer, lineage, config.to_jsonable(self.cfg))
+            path = checkpoint.save_trainer(
+                self.ckpt_dir, self.trainer, lineage, config.to_jsonable(cfg), **keep
+            )
         self._last_ckpt = time.monotonic()
         self.mx["checkpoints"].inc()
         self.mx["checkpoint_seconds"].observe(time.perf_counter() - t0)

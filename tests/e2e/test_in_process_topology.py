@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.common.mcap_io import read_messages
+from services.common.mcap_io import read_recording
 
 pytestmark = pytest.mark.e2e
 ROOT = Path(__file__).resolve().parents[2]
@@ -64,9 +64,7 @@ def test_in_process_and_zenoh_topologies_produce_the_same_kinds_and_counts(tmp_p
         assert all(v["exitcode"] in (None, 0) for v in summary["instances"].values())
 
     # the demonstration (same seed, same expert) is the same episode in both
-    demo = [
-        next(iter(read_messages(tmp_path / d / "episodes" / "raw-0.mcap")))[1] for d in ("inproc", "zenoh")
-    ]
+    demo = [next(iter(read_recording(tmp_path / d / "episodes")))[1] for d in ("inproc", "zenoh")]
     assert demo[0].is_demo and demo[1].is_demo and demo[0].seed == demo[1].seed
     np.testing.assert_array_equal(demo[0].actions, demo[1].actions)
     np.testing.assert_array_equal(demo[0].points, demo[1].points)

@@ -18,7 +18,8 @@ import pytest
 
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW, EVAL_REPORTS, STATUS, WEIGHTS_ANNOUNCE
 from services.bench.system import connect_to_run
-from services.common.mcap_io import read_messages
+from services.common.mcap_io import read_recording
+from services.learner import checkpoint
 
 pytestmark = pytest.mark.e2e
 ROOT = Path(__file__).resolve().parents[2]
@@ -116,9 +117,9 @@ def test_mea_run_trains_end_to_end_and_stops_at_the_budget(tmp_path):
     # the run directory
     cfg = json.loads((run_dir / "config.json").read_text())
     assert cfg["variant"] == "mea" and cfg["env_steps"] == BUDGET
-    assert (run_dir / "learner" / "checkpoints" / "learner.pt").exists()
+    assert checkpoint.exists(run_dir / "learner" / "checkpoints")
     history = (run_dir / "eval" / "history.jsonl").read_text().splitlines()
     assert len(history) == len(reports)
     assert (run_dir / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    recorded = list(read_messages(run_dir / "episodes" / "raw-0.mcap"))
+    recorded = list(read_recording(run_dir / "episodes"))
     assert len(recorded) == len(raw)

@@ -13,6 +13,7 @@ from proto.topics import EPISODES_AUGMENTED, REPLAY_GATE, STATUS, WEIGHTS_ANNOUN
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsClient
+from services.learner import checkpoint
 from services.learner.core.policy import PolicyRuntime
 from services.learner.main import run
 from tests.helpers.learner import SIZE, TINY_NET, learner_episode, tiny_learner_config
@@ -111,7 +112,7 @@ def test_learner_respects_the_ratio_publishes_versions_and_survives_bad_input(tm
     last = beats[-1].counters
     assert last["updates"] == 14 and last["rejected"] == 2 and last["env_steps"] == 40
     assert np.isfinite(last["critic_loss"])
-    assert (tmp_path / "checkpoints" / "learner.pt").exists()  # written on shutdown
+    assert checkpoint.exists(tmp_path / "checkpoints")  # written on shutdown
     assert (tmp_path / "learner.json").exists()
 
 

@@ -1,4 +1,5 @@
-"""Checkpoint files: atomic replace, previous copy kept, nothing unpickled beyond tensors and plain data."""
+"""Checkpoint files: atomic writes, the newest few kept (by count and bytes), fallback to an older one,
+nothing unpickled beyond tensors and plain data."""
 
 from __future__ import annotations
 
@@ -23,25 +24,34 @@ def payload(k: int) -> tuple[dict, dict, dict]:
     return learner, replay, meta
 
 
+def save(directory, k: int, **kw):
+    return checkpoint.save(
+        directory, **dict(zip(("learner", "replay", "meta"), payload(k), strict=True)), **kw
+    )
+
+
 def test_round_trip_and_previous_copy(tmp_path):
-    checkpoint.save(tmp_path, **dict(zip(("learner", "replay", "meta"), payload(1), strict=True)))
-    checkpoint.save(tmp_path, **dict(zip(("learner", "replay", "meta"), payload(2), strict=True)))
+    save(tmp_path, 1)
+    save(tmp_path, 2)
     learner, replay, meta = checkpoint.load(tmp_path)
     assert meta == {"version": 2, "run_id": "run-1"}
     assert torch.equal(learner["w"], torch.full((3,), 2.0))
     assert learner["opt"]["param_groups"][0]["betas"] == (0.9, 0.99)
     assert replay["codes"].dtype == np.uint8 and (replay["codes"] == np.arange(12).reshape(3, 4) + 2).all()
     assert replay["count"] == 2 and replay["ids"] == ["a", "b"]
-    assert (tmp_path / checkpoint.PREVIOUS).exists()
+    assert [p.name for p in checkpoint.checkpoints(tmp_path)] == ["learner-000002.pt", "learner-000001.pt"]
     assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
 
 
-def test_a_corrupt_newest_file_falls_back_to_the_previous_one(tmp_path):
-    for k in (1, 2):
-        checkpoint.save(tmp_path, **dict(zip(("learner", "replay", "meta"), payload(k), strict=True)))
-    (tmp_path / checkpoint.FILE).write_bytes(b"\x00garbage")
+def test_a_corrupt_newest_file_falls_back_to_the_previous_one(tmp_path, caplog):
+    for k in (1, 2, 3):
+        save(tmp_path, k)
+    newest, older, _ = checkpoint.checkpoints(tmp_path)
+    newest.write_bytes(b"\x00garbage")
     _, _, meta = checkpoint.load(tmp_path)
-    assert meta["version"] == 1
+    assert meta["version"] == 2 and "resuming an older one" in caplog.text
+    older.write_bytes(b"")  # and further back, as far as there are checkpoints
+    assert checkpoint.load(tmp_path)[2]["version"] == 1
 
 
 class Evil:
@@ -50,13 +60,13 @@ class Evil:
 
 
 def test_arbitrary_pickles_are_refused(tmp_path):
-    with open(tmp_path / checkpoint.FILE, "wb") as f:
+    with open(tmp_path / checkpoint.file_name(1), "wb") as f:
         torch.save(
             {"format": checkpoint.FORMAT, "learner": Evil(), "replay": {}, "meta": "{}"},
             f,
             pickle_module=pickle,
         )
-    with pytest.raises(checkpoint.CheckpointError, match="learner.pt"):
+    with pytest.raises(checkpoint.CheckpointError, match="learner-000001.pt"):
         checkpoint.load(tmp_path)
 
 
@@ -147,3 +157,84 @@ def test_every_learner_preset_checkpoints():
 
     for name, cfg in PRESETS.items():
         assert cfg.checkpoint_minutes > 0 or cfg.checkpoint_every > 0, name
+
+
+# ------------------------------------------------------------------------------------------------
+# Retention
+# ------------------------------------------------------------------------------------------------
+
+
+def names(directory) -> list[str]:
+    return [p.name for p in checkpoint.checkpoints(directory)]
+
+
+def test_only_the_newest_keep_checkpoints_remain_numbered_past_nine(tmp_path):
+    for k in range(1, 13):
+        save(tmp_path, k, keep=3)
+        assert len(names(tmp_path)) == min(k, 3)
+    assert names(tmp_path) == ["learner-000012.pt", "learner-000011.pt", "learner-000010.pt"]
+    assert checkpoint.load(tmp_path)[2]["version"] == 12
+    save(tmp_path, 13, keep=1)  # keep 1: the new one alone
+    assert names(tmp_path) == ["learner-000013.pt"]
+    with pytest.raises(ValueError, match="keep"):
+        save(tmp_path, 14, keep=0)
+    assert names(tmp_path) == ["learner-000013.pt"]  # refused before anything was written
+
+
+def test_a_byte_budget_deletes_the_oldest_but_never_the_newest(tmp_path):
+    save(tmp_path, 1)
+    size = (tmp_path / checkpoint.file_name(1)).stat().st_size
+    for k in (2, 3, 4):
+        save(tmp_path, k, keep=10, max_bytes=2 * size + size // 2)
+    assert names(tmp_path) == ["learner-000004.pt", "learner-000003.pt"]  # two fit, three do not
+    save(tmp_path, 5, keep=10, max_bytes=1)  # a budget below one checkpoint still keeps the newest
+    assert names(tmp_path) == ["learner-000005.pt"]
+    assert checkpoint.load(tmp_path)[2]["version"] == 5
+
+
+def test_a_file_being_written_and_the_published_lineage_are_never_rotated(tmp_path):
+    save(tmp_path, 1)
+    checkpoint.record_published(tmp_path, "run-1", 7)
+    (tmp_path / checkpoint.TMP).write_bytes(b"half a checkpoint")  # a write in progress (or crashed)
+    assert names(tmp_path) == ["learner-000001.pt"]
+    for k in (2, 3, 4):
+        save(tmp_path, k, keep=1)
+    assert sorted(os.listdir(tmp_path)) == ["learner-000004.pt", "published.json"]  # the tmp was reused
+    assert checkpoint.last_published(tmp_path) == ("run-1", 7)
+
+
+def test_checkpoints_from_before_numbering_are_resumed_then_rotated(tmp_path):
+    # the layout of earlier versions: learner.pt (newest) and learner.prev.pt
+    save(tmp_path, 1)
+    save(tmp_path, 2)
+    os.replace(tmp_path / checkpoint.file_name(1), tmp_path / "learner.prev.pt")
+    os.replace(tmp_path / checkpoint.file_name(2), tmp_path / "learner.pt")
+    assert checkpoint.exists(tmp_path) and checkpoint.load(tmp_path)[2]["version"] == 2
+    (tmp_path / "learner.pt").write_bytes(b"\x00garbage")
+    assert checkpoint.load(tmp_path)[2]["version"] == 1  # the old fallback still works
+    save(tmp_path, 3, keep=3)  # numbering starts after them, and they count as the oldest
+    assert names(tmp_path) == ["learner-000001.pt", "learner.pt", "learner.prev.pt"]
+    assert checkpoint.load(tmp_path)[2]["version"] == 3
+    save(tmp_path, 4, keep=2)
+    assert names(tmp_path) == ["learner-000002.pt", "learner-000001.pt"]
+
+
+def test_a_learner_saving_more_than_keep_resumes_from_the_newest(tmp_path):
+    from services.learner.config import LearnerConfig
+
+    assert LearnerConfig().keep_checkpoints == checkpoint.KEEP == 3
+    with pytest.raises(ValueError, match="keep_checkpoints"):
+        LearnerConfig(keep_checkpoints=0)
+    with pytest.raises(ValueError, match="checkpoint_max_bytes"):
+        LearnerConfig(checkpoint_max_bytes=-1)
+    a = tiny_trainer(min_steps=10, seed=1)
+    a.insert(learner_episode(0, T=10, demo=True))
+    lineages = []
+    for v in range(5):
+        assert a.step() is not None
+        lineages.append(checkpoint.Lineage(version=v, run_id="run-k", last={"critic_loss": float(v)}))
+        checkpoint.save_trainer(tmp_path, a, lineages[-1], {"v": v}, keep=2)
+    assert names(tmp_path) == ["learner-000005.pt", "learner-000004.pt"]
+    b = tiny_trainer(min_steps=10, seed=2)
+    assert checkpoint.restore_trainer(tmp_path, b) == lineages[-1]
+    assert b.updates == a.updates == 5

@@ -119,6 +119,32 @@ def test_resume_reuses_the_saved_settings_with_new_seeds_and_no_demos(tmp_path):
         resumed_config(RunConfig(resume=tmp_path / "missing"))
 
 
+def test_recording_limits_default_to_256_mib_or_an_hour_keep_everything_and_are_saved(tmp_path):
+    d = RunConfig()
+    assert (d.recording_segment_bytes, d.recording_segment_seconds, d.recording_max_bytes) == (
+        2**28,
+        3600.0,
+        0,
+    )
+    for field in ("recording_segment_bytes", "recording_segment_seconds", "recording_max_bytes"):
+        with pytest.raises(ValueError, match="recording"):
+            RunConfig(**{field: -1})
+    first = RunConfig(run_dir=tmp_path, recording_segment_bytes=1000, recording_max_bytes=5000)
+    config.save(first, tmp_path / "config.json")
+    saved = json.loads((tmp_path / "config.json").read_text())
+    assert (saved["recording_segment_bytes"], saved["recording_max_bytes"]) == (1000, 5000)
+    cfg = resumed_config(RunConfig(resume=tmp_path))  # saved with the run, like its other settings
+    assert (cfg.recording_segment_bytes, cfg.recording_segment_seconds, cfg.recording_max_bytes) == (
+        1000,
+        3600.0,
+        5000,
+    )
+    for k in ("recording_segment_bytes", "recording_segment_seconds", "recording_max_bytes"):
+        del saved[k]  # a run saved before these settings: the defaults
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    assert resumed_config(RunConfig(resume=tmp_path)).recording_segment_bytes == 2**28
+
+
 def test_evaluation_defaults_20_episodes_every_1000_env_steps_and_50_at_the_budget(tmp_path):
     from services.run_config import PRESETS
 

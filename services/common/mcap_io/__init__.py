@@ -21,6 +21,10 @@ chunk still open are lost; a chunk is closed when it exceeds ``chunk_size`` byte
 comes ``flush_interval_s`` after the last flush, and on :meth:`McapRecorder.flush`. Written chunks
 reach the OS at once (a process crash loses nothing written); only ``close`` fsyncs.
 
+Long recordings roll over numbered segment files (:mod:`services.common.mcap_io.segments`:
+:class:`SegmentedRecorder`, :func:`recording_segments`, :func:`read_recording`), each one a complete
+recording as above, the oldest deleted beyond a byte budget if one is set.
+
 Reading never unpickles anything: payloads go through :func:`proto.codec.decode`, which validates
 every field against its spec under the given :class:`~proto.msgpack_wire.Limits`.
 """
@@ -47,6 +51,12 @@ from services.common.mcap_io.reader import (
 )
 from services.common.mcap_io.recorder import McapRecorder
 from services.common.mcap_io.recovery import recover
+from services.common.mcap_io.segments import (
+    SEGMENT_METADATA,
+    SegmentedRecorder,
+    read_recording,
+    recording_segments,
+)
 
 __all__ = [
     "CONFIG_METADATA_PREFIX",
@@ -57,14 +67,18 @@ __all__ = [
     "RECORDING_METADATA",
     "RUN_METADATA",
     "SCHEMA_ENCODING",
+    "SEGMENT_METADATA",
     "TMP_SUFFIX",
     "TOPIC_PREFIX",
     "McapRecorder",
     "ReadStats",
+    "SegmentedRecorder",
     "default_topic",
     "read_config",
     "read_messages",
     "read_metadata",
+    "read_recording",
+    "recording_segments",
     "recover",
     "tmp_path_for",
 ]

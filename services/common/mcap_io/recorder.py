@@ -30,6 +30,7 @@ from services.common.mcap_io.layout import (
 
 log = logging.getLogger(__name__)
 
+_MESSAGE_OVERHEAD = 1 + 8 + 2 + 4 + 8 + 8  # opcode, length, channel, sequence, log and publish times
 _COMPRESSIONS = {"lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD, "none": CompressionType.NONE}
 
 
@@ -85,6 +86,8 @@ class McapRecorder:
         self._last_flush = time.monotonic()
         self._started_ns = time.time_ns()
         self._count = 0
+        self._pending = 0  # message bytes in the open chunk (not in the file yet)
+        self._size = 0
         self._closed = False
         try:
             self._writer.start(profile=PROFILE, library=LIBRARY)
@@ -113,6 +116,13 @@ class McapRecorder:
     def message_count(self) -> int:
         """Messages written so far."""
         return self._count
+
+    @property
+    def size_bytes(self) -> int:
+        """The file's size so far, the open chunk's messages counted uncompressed (so at least what
+        the file will take once they are written; the summary written on close adds a little)."""
+        with self._lock:
+            return self._size if self._closed else self._file.tell() + self._pending
 
     def _check_open(self) -> None:
         if self._closed:
@@ -159,9 +169,12 @@ class McapRecorder:
             channel_id = self._channel_for(type(msg), topic or default_topic(msg.TYPE))
             seq = self._sequences[channel_id]
             self._sequences[channel_id] = (seq + 1) % 2**32
+            before = self._file.tell()
             self._writer.add_message(
                 channel_id=channel_id, log_time=log_time_ns, data=data, publish_time=log_time_ns, sequence=seq
             )
+            written = self._file.tell() != before  # the writer wrote its chunk out, this message included
+            self._pending = 0 if written else self._pending + _MESSAGE_OVERHEAD + len(data)
             self._count += 1
             if (
                 self._flush_interval_s is not None
@@ -193,6 +206,7 @@ class McapRecorder:
     def _flush_locked(self) -> None:
         self._writer.flush()  # closes the open chunk, writes it, flushes our file object
         self._file.flush()
+        self._pending = 0
         self._last_flush = time.monotonic()
 
     def flush(self, fsync: bool = False) -> None:
@@ -231,6 +245,7 @@ class McapRecorder:
                 log.exception("could not finish MCAP recording; partial data left in %s", self.tmp_path)
                 self._file.close()
                 raise
+            self._size = self._file.tell()
             self._file.close()
             os.replace(self.tmp_path, self.path)
             fsync_dir(self.path.parent)
