@@ -11,10 +11,13 @@ import json
 import logging
 import os
 import queue
+import re
 import threading
 from dataclasses import dataclass
-from typing import Literal
+from pathlib import Path
+from typing import Annotated, Literal
 
+import tyro
 import zenoh
 
 from proto.codec import Message
@@ -27,6 +30,41 @@ _LOG_ONCE = threading.Lock()
 _log_started = False
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+
+
+_PROJECT_KEYS = (
+    "mode",
+    "listen/endpoints",
+    "connect/endpoints",
+    "connect/timeout_ms",
+    "scouting/multicast/enabled",
+)
+"""The Zenoh keys ZenohConfig's own fields write; a config file that sets one of them wins."""
+
+
+def _zenoh_message(exc: Exception) -> str:
+    """A ZError's text without the Rust source location zenoh appends."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(exc)).strip()
+
+
+def load_zenoh_file(path: str) -> zenoh.Config:
+    """Zenoh's own config file (JSON5, JSON or YAML, by extension); ValueError naming the file on any problem."""
+    p = Path(path)
+    if not p.exists():
+        raise ValueError(f"Zenoh config file {path}: no such file")
+    if not p.is_file():
+        raise ValueError(f"Zenoh config file {path}: not a regular file")
+    try:
+        with p.open("rb"):
+            pass
+    except OSError as exc:
+        raise ValueError(f"Zenoh config file {path}: cannot read it ({exc.strerror})") from None
+    try:
+        return zenoh.Config.from_file(str(p))
+    except zenoh.ZError as exc:
+        raise ValueError(
+            f"Zenoh config file {path} is not a valid Zenoh config: {_zenoh_message(exc)}"
+        ) from None
 
 
 @dataclass(frozen=True)
@@ -44,27 +82,60 @@ class ZenohConfig:
     """Multicast discovery (off: explicit endpoints only, which is what works in containers and CI)."""
     namespace: str = "default"
     """Key namespace separating training runs that share one Zenoh network."""
+    config_file: Annotated[str, tyro.conf.arg(aliases=("--zenoh-config",))] = ""
+    """Zenoh's own config file (JSON5) for TLS, user/password authentication, access control or any other
+    Zenoh setting. Every key the file sets wins; the fields above fill only the keys it leaves unset, and
+    a field given a non-default value that contradicts the file is an error. Empty: no file."""
+
+    def __post_init__(self) -> None:
+        if self.config_file:
+            self._file_config()  # missing, unreadable, invalid or contradicted: fail while parsing flags
+
+    def _file_config(self) -> tuple[zenoh.Config, set[str]]:
+        """The file's config and which of `_PROJECT_KEYS` it sets (differs from Zenoh's default)."""
+        conf = load_zenoh_file(self.config_file)
+        default = zenoh.Config()
+        file_sets = {k for k in _PROJECT_KEYS if conf.get_json(k) != default.get_json(k)}
+        given = {  # field values other than the default count as explicit
+            "mode": ("mode", self.mode != "peer", self.mode),
+            "listen/endpoints": ("listen", bool(self.listen), list(self.listen)),
+            "connect/endpoints": ("connect", bool(self.connect), list(self.connect)),
+            "scouting/multicast/enabled": ("multicast_scouting", self.multicast_scouting, True),
+        }
+        for key, (field, explicit, value) in given.items():
+            if explicit and key in file_sets and json.loads(conf.get_json(key)) != value:
+                raise ValueError(
+                    f"zenoh {field} {json.dumps(value)} contradicts {key} = {conf.get_json(key)} in the Zenoh "
+                    f"config file {self.config_file} (the file wins for every key it sets): drop one of them"
+                )
+        return conf, file_sets
 
     def to_zenoh(self) -> zenoh.Config:
-        conf = zenoh.Config()
-        conf.insert_json5("mode", json.dumps(self.mode))
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        """The session config: the config file if any, then this config's fields for every key it leaves unset."""
+        if self.config_file:
+            conf, file_sets = self._file_config()
+        else:
+            conf, file_sets = zenoh.Config(), set()
+
+        def put(key: str, value) -> None:
+            if key not in file_sets:
+                conf.insert_json5(key, json.dumps(value))
+
+        put("mode", self.mode)
+        mode = json.loads(conf.get_json("mode"))  # the file's mode, where it sets one
+        put("scouting/multicast/enabled", self.multicast_scouting)
         listen = list(self.listen)
         if not listen:
-            listen = (
-                [DEFAULT_ROUTER]
-                if self.mode == "router"
-                else ["tcp/127.0.0.1:0"]
-                if self.mode == "peer"
-                else []
-            )
-        conf.insert_json5("listen/endpoints", json.dumps(listen))
-        connect = list(self.connect) or ([] if self.mode == "router" else [DEFAULT_ROUTER])
-        connect = [e for e in connect if e not in listen]
-        conf.insert_json5("connect/endpoints", json.dumps(connect))
-        if self.mode == "client":
+            listen = [DEFAULT_ROUTER] if mode == "router" else ["tcp/127.0.0.1:0"] if mode == "peer" else []
+        put("listen/endpoints", listen)
+        if "listen/endpoints" in file_sets:
+            listen = json.loads(conf.get_json("listen/endpoints"))
+            listen = listen if isinstance(listen, list) else listen.get(mode) or []
+        connect = list(self.connect) or ([] if mode == "router" else [DEFAULT_ROUTER])
+        put("connect/endpoints", [e for e in connect if e not in listen])
+        if mode == "client":
             # wait for the router instead of failing at once (compose/launcher start order)
-            conf.insert_json5("connect/timeout_ms", json.dumps({"client": -1}))
+            put("connect/timeout_ms", {"client": -1})
         return conf
 
 
