@@ -38,7 +38,7 @@ from services.common.mcap_io import McapRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
 from services.plan import ChildSpec, child_specs, restarted
-from services.run_config import PRESETS, RunConfig, resumed_config
+from services.run_config import PRESETS, RunConfig, recording_metadata, recording_path, resumed_config
 from services.status_board import StatusBoard
 from services.supervision import RestartPolicy, RestartSettings
 
@@ -322,8 +322,7 @@ def run(cfg: RunConfig) -> int:
     metrics = _launcher_metrics(cfg, router)
     recorder = None
     if cfg.record:
-        meta = {"task": cfg.task, "variant": cfg.variant, "seed": str(cfg.seed), "resumes": str(cfg.resumes)}
-        recorder = EpisodeRecorder(router, run_dir / "episodes" / f"raw-{cfg.resumes}.mcap", meta)
+        recorder = EpisodeRecorder(router, recording_path(run_dir, cfg.resumes), recording_metadata(cfg))
     board = StatusBoard(specs, budget=cfg.env_steps, bus=router)
     procs: dict = {}
     failed = False
