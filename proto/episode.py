@@ -46,8 +46,8 @@ class Augmentation(Message):
     phase_split: int = spec(Int(0, 100_000), "H_p: first step of the trivial phase (MEA); 0 if not MEA")
     params: dict = spec(
         MapOf(Arr(("float32", "float64", "int64"), ("N",), finite=True)),
-        "group parameters, 1-D arrays by name (e.g. `rotation` (1,): rad, chosen so that no turned "
-        "action leaves [-1, 1] (1.5); `delta_r` (H_p,))",
+        "group parameters, 1-D arrays by name: `rotation` (1,) rad (rotated copies), `delta_r`, `delta_z`, "
+        "`delta_rot`, `delta_theta`, `eps` (H_p,) and `start` (1,) (MEA copies); see section 4",
     )
 
 
@@ -73,8 +73,9 @@ class Episode(Message):
     )
     points: np.ndarray = spec(
         Arr(("float32",), ("T+1", "S", "P", 3), finite=True),
-        "segmented point clouds in the gripper-centric frame (m): origin at the gripper points' "
-        "centroid, world orientation; P points per segment (resampled to a fixed count)",
+        "segmented point clouds in the gripper-centric frame (m): origin at the gripper pivot (the "
+        "gripper points' centroid, calibrated once; 3.1), world orientation; P points per segment, "
+        "resampled to a fixed count (3.3)",
     )
     point_counts: np.ndarray = spec(
         Arr(("int32",), ("T+1", "S")), "points observed per segment before resampling (0: segment unseen)"
@@ -91,13 +92,15 @@ class Episode(Message):
     truncated: np.ndarray = spec(Arr(("bool",), ("T",)), "true on the step that hit the time limit")
     gripper_pose: np.ndarray = spec(
         Arr(("float32",), ("T+1", 4), finite=True),
-        "privileged: gripper (x, y, z, yaw) in the world frame (m, rad); not a policy input",
+        "privileged: gripper pivot (x, y, z) and yaw in the world frame (m, rad; 3.1, 3.2); not a policy input",
     )
     object_poses: np.ndarray = spec(
         Arr(("float32",), ("T+1", "S-1", 7), finite=True),
-        "privileged: per object (x, y, z, qx, qy, qz, qw) in the world frame",
+        "privileged: per object, in `segments[1:]` order, (x, y, z, qx, qy, qz, qw) in the world frame (3.4)",
     )
-    contacts: np.ndarray = spec(Arr(("bool",), ("T+1", "S-1")), "privileged: gripper touches object i")
+    contacts: np.ndarray = spec(
+        Arr(("bool",), ("T+1", "S-1")), "privileged: gripper touches object i (`segments[1 + i]`; 3.4)"
+    )
     fixed_object: int = spec(
         Int(-1, 15),
         "privileged: index (into the objects, `segments[1:]`) of the immovable object; -1 where the task "
@@ -106,7 +109,8 @@ class Episode(Message):
     )
     images: np.ndarray | None = spec(
         Opt(Arr(("uint8", "uint16", "float16", "float32"), ("T+1", "C", "H", "W"), finite=True)),
-        "optional policy images (channels first); nil when the consumer renders them",
+        "optional images (channels first): uint8 policy images or float16 rendered depth (3.5); nil when "
+        "the consumer renders them",
         default=None,
     )
     augmentation: Augmentation | None = spec(

@@ -22,6 +22,7 @@ import signal
 import sys
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,7 @@ from services.common.mcap_io import SegmentedRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
 from services.plan import ChildSpec, child_specs, restarted
-from services.run_config import PRESETS, RunConfig, resumed_config
+from services.run_config import PRESETS, RunConfig, recording_metadata, resumed_config
 from services.status_board import StatusBoard
 from services.supervision import RestartPolicy, RestartSettings
 
@@ -98,12 +99,17 @@ def stop_children(procs: dict, grace: float) -> None:
 class EpisodeRecorder:
     """Writes every raw episode the router sees to numbered MCAP segments in ``directory``
     (``SegmentedRecorder``: rolled by size or age, the oldest deleted beyond a budget), in a thread
-    of the launcher."""
+    of the launcher. An episode an actor publishes again (no ack yet) is recorded once: the ids of the
+    last ``RECENT_IDS`` episodes are remembered (repeats come within minutes, never that many later)."""
+
+    RECENT_IDS = 4096
 
     def __init__(self, router: Bus, directory: Path, run: int, metadata: dict[str, str], *,
                  segment_bytes: int = 0, segment_seconds: float = 0.0, max_bytes: int = 0) -> None:  # fmt: skip
         self.sub = router.subscribe(EPISODES_RAW, capacity=256)
         self.written = 0
+        self.repeats = 0
+        self._recent: OrderedDict[str, None] = OrderedDict()
         self.recorder = SegmentedRecorder(directory, run, metadata=metadata, compression="zstd",
                                           segment_bytes=segment_bytes, segment_seconds=segment_seconds,
                                           max_bytes=max_bytes)  # fmt: skip
@@ -118,10 +124,20 @@ class EpisodeRecorder:
                 if d is None:
                     self.recorder.tick()  # an idle segment still ends on time
                     continue
-                self.recorder.write(d.message, topic=d.key)
-                self.written += 1
+                self._write(d)
             except Exception:  # noqa: BLE001 - a recording problem must not stop training
                 log.exception("recording an episode failed")
+
+    def _write(self, d) -> None:
+        eid = d.message.episode_id
+        if eid in self._recent:
+            self.repeats += 1
+            return
+        self.recorder.write(d.message, topic=d.key)
+        self.written += 1
+        self._recent[eid] = None
+        if len(self._recent) > self.RECENT_IDS:
+            self._recent.popitem(last=False)
 
     def close(self) -> None:
         self.sub.close()
@@ -129,8 +145,7 @@ class EpisodeRecorder:
         self.thread.join(timeout=5.0)
         try:
             for d in self.sub.drain():  # what was already received is still written
-                self.recorder.write(d.message, topic=d.key)
-                self.written += 1
+                self._write(d)
         finally:
             self.recorder.close()
 
@@ -335,8 +350,7 @@ def run(cfg: RunConfig) -> int:
     metrics = _launcher_metrics(cfg, router)
     recorder = None
     if cfg.record:
-        meta = {"task": cfg.task, "variant": cfg.variant, "seed": str(cfg.seed), "resumes": str(cfg.resumes)}
-        recorder = EpisodeRecorder(router, run_dir / "episodes", cfg.resumes, meta,
+        recorder = EpisodeRecorder(router, run_dir / "episodes", cfg.resumes, recording_metadata(cfg),
                                    segment_bytes=cfg.recording_segment_bytes,
                                    segment_seconds=cfg.recording_segment_seconds,
                                    max_bytes=cfg.recording_max_bytes)  # fmt: skip

@@ -153,6 +153,11 @@ class RunConfig:
 PRESETS = {"default": RunConfig()}
 
 
+def recording_metadata(cfg: RunConfig) -> dict[str, str]:
+    """The ``run`` metadata record of that recording (proto/README.md, section 5)."""
+    return {"task": cfg.task, "variant": cfg.variant, "seed": str(cfg.seed), "resumes": str(cfg.resumes)}
+
+
 _MACHINE_FIELDS = ("listen", "metrics_port", "duration_seconds", "stop_grace_seconds", "log_format",
                    "final_eval_seconds", "in_process")  # fmt: skip
 """Fields a resumed run takes from the command line rather than from the run's saved config."""

@@ -62,6 +62,20 @@ class DemosConfig:
 
 
 PRESETS = {"default": DemosConfig()}
+CONFIG_NAME = "demos"
+"""The resolved config is stored as metadata ``config/demos``."""
+SEEDS_METADATA = "seeds"
+"""Name of the metadata record listing the kept demonstrations' seeds."""
+
+
+def run_metadata(cfg: DemosConfig) -> dict[str, str]:
+    """The ``run`` metadata record of a demonstrations file (proto/README.md, section 5)."""
+    return {"task": cfg.task, "kind": "demonstrations", "style": cfg.style}
+
+
+def seeds_metadata(seeds: list[int], attempts: int) -> dict[str, str]:
+    """The ``seeds`` metadata record: the kept seeds (comma-separated) and the expert attempts made."""
+    return {"seeds": ",".join(map(str, seeds)), "attempts": str(attempts)}
 
 
 def record(cfg: DemosConfig) -> dict:
@@ -70,9 +84,8 @@ def record(cfg: DemosConfig) -> dict:
     actor = Actor(actor_cfg, "demos")
     attempts_cap = cfg.max_attempts or 4 * cfg.n
     kept, attempts, seeds = 0, 0, []
-    meta = {"task": cfg.task, "kind": "demonstrations", "style": cfg.style}
-    with McapRecorder(cfg.out, metadata=meta, overwrite=cfg.overwrite) as rec:
-        rec.write_config("demos", json.dumps(config.to_jsonable(cfg)))
+    with McapRecorder(cfg.out, metadata=run_metadata(cfg), overwrite=cfg.overwrite) as rec:
+        rec.write_config(CONFIG_NAME, json.dumps(config.to_jsonable(cfg)))
         while kept < cfg.n and attempts < attempts_cap:
             b = actor.expert_episode(kept)
             attempts += 1
@@ -84,7 +97,7 @@ def record(cfg: DemosConfig) -> dict:
             rec.write(b.finish(actor.episode_id(b)))
             seeds.append(b.meta["seed"])
             kept += 1
-        rec.add_metadata("seeds", {"seeds": ",".join(map(str, seeds)), "attempts": str(attempts)})
+        rec.add_metadata(SEEDS_METADATA, seeds_metadata(seeds, attempts))
     actor.env.close()
     return {"kept": kept, "attempts": attempts, "out": str(cfg.out), "seeds": seeds}
 

@@ -32,6 +32,8 @@ WORKSPACE_CENTRE = (0.5, 0.0)
 ROTATION_DRAWS = 32
 """Uniform angles tried by ``draw_rotation`` before it falls back to a multiple of 90 degrees."""
 QUARTER = math.pi / 2
+ROTATION_PARAM = "rotation"
+"""``Augmentation.params`` key of a rotated copy: (1,) float64, its angle (rad) about the vertical."""
 
 
 def cos_sin(phi: float) -> tuple[float, float]:
@@ -102,7 +104,7 @@ def rotate_episode(ep: Episode, phi: float, *, centre: tuple[float, float] = WOR
 
 def isometric_copy(ep: Episode, phi: float, *, seed: int, copy_index: int, episode_id: str) -> Episode:
     aug = Augmentation(source_episode_id=ep.episode_id, kind="isometric", seed=seed, copy_index=copy_index,
-                       phase_split=0, params={"rotation": np.array([phi])})  # fmt: skip
+                       phase_split=0, params={ROTATION_PARAM: np.array([phi])})  # fmt: skip
     return dataclasses.replace(
         ep, episode_id=episode_id, images=None, augmentation=aug, **rotate_episode(ep, phi)
     )
@@ -112,6 +114,6 @@ def compose_with_mea(mea_ep: Episode, phi: float) -> Episode:
     """G_t x G: an MEA copy additionally rotated by the episode's shared isometric angle phi."""
     aug = mea_ep.augmentation
     params = dict(aug.params)
-    params["rotation"] = np.array([phi])
+    params[ROTATION_PARAM] = np.array([phi])
     new_aug = dataclasses.replace(aug, kind="mea+isometric", params=params)
     return dataclasses.replace(mea_ep, augmentation=new_aug, **rotate_episode(mea_ep, phi))

@@ -43,6 +43,14 @@ from proto.actions import DELTA_THETA, DELTA_XYZ, THETA, XYZ
 from proto.episode import Augmentation, Episode
 from services.geometry import rotate_z_per_step, turn_xy, wrap_angle
 
+GROUP_PARAM_KEYS = ("delta_r", "delta_z", "delta_rot", "delta_theta", "eps")
+"""``Augmentation.params`` keys of an MEA copy holding g_t, one entry per non-trivial step: the
+columns of ``draw_group``'s (delta^r, delta^z, delta^rot, delta^theta, eps), in that order."""
+START_PARAM = "start"
+"""``Augmentation.params`` key of an MEA copy: (1,) int64, the first source step the copy keeps."""
+MEA_PARAM_KEYS = (*GROUP_PARAM_KEYS, START_PARAM)
+"""Every ``Augmentation.params`` key an MEA copy carries (proto/README.md documents each)."""
+
 
 @dataclass(frozen=True)
 class MeaSettings:
@@ -276,14 +284,8 @@ def augment(
     arrays = apply_draw(ep, draw)
     n = draw.hp - draw.start
     g = draw.groups[draw.start : draw.hp]
-    params = {
-        "delta_r": g[:, 0].copy(),
-        "delta_z": g[:, 1].copy(),
-        "delta_rot": g[:, 2].copy(),
-        "delta_theta": g[:, 3].copy(),
-        "eps": g[:, 4].copy(),
-        "start": np.array([draw.start], np.int64),
-    }
+    params = {key: g[:, c].copy() for c, key in enumerate(GROUP_PARAM_KEYS)}
+    params[START_PARAM] = np.array([draw.start], np.int64)
     aug = Augmentation(source_episode_id=ep.episode_id, kind="mea", seed=seed, copy_index=copy_index,
                        phase_split=n, params=params)  # fmt: skip
     out = dataclasses.replace(ep, episode_id=episode_id, images=None, augmentation=aug, **arrays)

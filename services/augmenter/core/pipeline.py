@@ -37,8 +37,8 @@ import numpy as np
 
 from proto.episode import Episode
 from proto.seeds import MEA_COPY_SEED_OFFSET, SHARED_ROTATION_STREAM
-from services.augmenter.core.isometric import compose_with_mea, draw_rotation, isometric_copy
-from services.augmenter.core.mea import MeaDraw, MeaSettings, augment
+from services.augmenter.core.isometric import ROTATION_PARAM, compose_with_mea, draw_rotation, isometric_copy
+from services.augmenter.core.mea import MEA_PARAM_KEYS, MeaDraw, MeaSettings, augment
 from services.observation.depth_image import (
     DEFAULT_DEPTH_SPEC,
     DepthImageSpec,
@@ -50,6 +50,9 @@ from services.observation.projection import ProjectionSpec, segment_policy_image
 MEA_ON = ("demos", "successes", "all", "none")
 OBSERVATIONS = ("voxel", "depth")
 """Policy images: voxel projection of the point clouds, or the rendered depth image (Equi-RSAC)."""
+AUGMENTATION_PARAM_KEYS = (ROTATION_PARAM, *MEA_PARAM_KEYS)
+"""Every key the augmenter puts into ``Augmentation.params`` (isometric copies: ``rotation``; MEA
+copies: ``MEA_PARAM_KEYS``; MEA + isometric copies: both). proto/README.md documents each."""
 
 
 @dataclass(frozen=True)
@@ -221,7 +224,7 @@ def _augment_depth(raw: Episode, s: AugmentSettings, seed: int) -> list[Episode]
     codes = depth_policy_images(raw)
     out = [dataclasses.replace(raw, images=codes)]
     for copy in isometric_copies(raw, s.isometric_count(raw), seed):
-        phi = float(copy.augmentation.params["rotation"][0])
+        phi = float(copy.augmentation.params[ROTATION_PARAM][0])
         out.append(dataclasses.replace(copy, images=rotate_images(codes, phi)))
     return out
 
