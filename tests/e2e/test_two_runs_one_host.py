@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -14,31 +13,12 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import find_free_port_base
+
 pytestmark = pytest.mark.e2e
 ROOT = Path(__file__).resolve().parents[2]
 SECONDS = 45
 OFFSETS = (0, 1, 2, 3, 10)  # launcher, learner, augmenter, evaluator, actor 0
-
-
-def _free(port: int) -> bool:
-    with socket.socket() as s:
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
-
-
-def _port_base(avoid: set[int]) -> int:
-    """A base whose launcher, service and actor ports are all free."""
-    for _ in range(200):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        ports = {base + o for o in OFFSETS}
-        if base + 20 < 65535 and not ports & avoid and all(_free(p) for p in ports):
-            return base
-    raise RuntimeError("no free port base")
 
 
 def _scrape(port: int) -> str:
@@ -51,7 +31,7 @@ def test_two_stacks_with_their_own_namespace_and_port_base_run_side_by_side(tmp_
     runs = []
     taken: set[int] = set()
     for name in ("a", "b"):
-        base = _port_base(taken)
+        base = find_free_port_base(OFFSETS, taken)
         taken |= {base + o for o in range(21)}
         cmd = [sys.executable, "-m", "services.cli", "run", "--demos", "1", "--env-steps", "0",
                "--learner-preset", "smoke", "--namespace", f"run-{name}", "--metrics-port", str(base),

@@ -8,6 +8,7 @@ the same arguments get byte-identical encodings.
 from __future__ import annotations
 
 import dataclasses
+import socket
 import threading
 
 import numpy as np
@@ -26,6 +27,25 @@ BASE_TIME = 1_700_000_000.0
 
 _issued_ports: set[int] = set()
 _port_lock = threading.Lock()
+
+
+def port_is_free(port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def find_free_port_base(offsets: tuple[int, ...], avoid: set[int] = frozenset()) -> int:  # type: ignore[assignment]
+    """A `mea run --metrics-port` base whose ports ``base + offset`` are all free (and not in ``avoid``)."""
+    for _ in range(200):
+        base = free_port()
+        ports = {base + o for o in offsets}
+        if base + max(offsets) < 65535 and not ports & avoid and all(port_is_free(p) for p in ports):
+            return base
+    raise RuntimeError("no free port base")
 
 
 def find_free_port() -> int:
