@@ -35,6 +35,11 @@ BENCHES: dict[str, tuple[str, str, str]] = {
         "SystemBenchConfig",
         "raw vs full-stack env steps/s, augmenter and learner rates, weights publish -> loaded",
     ),
+    "soak": (
+        "services.bench.soak",
+        "SoakBenchConfig",
+        "an hour of `mea run`: RSS of every service after warm-up and at the end (growth < 5%)",
+    ),
     "tasks": (
         "services.bench.tasks",
         "TasksBenchConfig",

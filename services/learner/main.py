@@ -222,6 +222,10 @@ class Learner:
             "updates": self.trainer.updates,
             "env_steps": self.trainer.env_steps,
             "replay_transitions": len(self.trainer.replay),
+            # the replay's arrays are reserved at start and touched as they fill: RSS grows with data
+            "replay_bytes_filled": self.trainer.replay.nbytes
+            * len(self.trainer.replay)
+            / max(1, self.trainer.replay.capacity_transitions),
             "version": self.version,
             "episodes_in": self.counts["episodes_in"],
             "rejected": self.counts["rejected"],
