@@ -20,7 +20,7 @@ import proto
 from proto import msgpack_wire
 from proto.codec import Message, field_table
 from proto.msgpack_wire import Limits
-from proto.topics import PREFIX, TOPICS, Topic
+from proto.topics import PREFIX, TOPICS, Kind, Topic
 
 BEGIN = "<!-- BEGIN GENERATED -->"
 END = "<!-- END GENERATED -->"
@@ -120,6 +120,7 @@ def _topic_row(t: Topic) -> list[object]:
         "yes" if t.qos.express else "no",
         "newest per key" if t.qos.latest_only else "every message",
         f"{t.max_bytes // (1024 * 1024)} MiB",
+        ", ".join(t.writers) if t.writers else ("—" if t.kind is Kind.LIVELINESS else "any (key names it)"),
         t.doc,
     ]
 
@@ -170,6 +171,7 @@ def render_reference() -> str:
             "express",
             "subscriber keeps",
             "max message",
+            "written by (sealed)",
             "description",
         ],
         [_topic_row(t) for t in TOPICS],
