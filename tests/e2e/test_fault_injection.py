@@ -2,7 +2,8 @@
 the default): a process without the run's key impersonates the learner, the evaluator, an actor and
 the augmenter, and the augmenter is SIGKILLed while it holds an episode. The run goes on to its
 budget, nothing forged is accepted (every attempt is counted), the augmenter is restarted and every
-raw episode the actor published reaches the learner's replay exactly once."""
+raw episode the actor published reaches the learner's replay exactly once; a SIGKILLed actor is
+restarted too, and training goes on."""
 
 from __future__ import annotations
 
@@ -94,7 +95,8 @@ def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path)
     published: list[tuple[str, float]] = []  # raw episode ids as they went out (repeats included)
     actor_versions: list[int] = []
     aug_pids: list[int] = []
-    killed_at = restarted_at = None
+    stopped_at = killed_at = restarted_at = actor_killed_at = None
+    actor_pids: list[int] = []
     counts: dict[str, dict] = {}
     try:
         bus = connect_to_run(port, proc)
@@ -119,6 +121,8 @@ def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path)
                 hb = d.message
                 if hb.service == "actor":
                     actor_versions.append(hb.policy_version)
+                    if hb.pid not in actor_pids:
+                        actor_pids.append(hb.pid)
                 if hb.service == "augmenter" and hb.pid not in aug_pids:
                     aug_pids.append(hb.pid)
                     if killed_at is not None and restarted_at is None:
@@ -128,10 +132,17 @@ def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path)
                 injected_at = time.time()
             if injected_at is not None and not counts and time.time() > injected_at + 5:
                 counts = {svc: scrape(base + off) for svc, off in OFFSETS.items()}
-            # then kill the augmenter right after an episode went out: it holds that episode, unacknowledged
-            if counts and killed_at is None and fresh and aug_pids:
+            # then stop the augmenter, and kill it once an episode went out that it cannot have taken
+            if counts and stopped_at is None and aug_pids:
+                os.kill(aug_pids[-1], signal.SIGSTOP)
+                stopped_at = time.time()
+            elif stopped_at is not None and killed_at is None and fresh and time.time() > stopped_at + 0.5:
                 os.kill(aug_pids[-1], signal.SIGKILL)
                 killed_at = time.time()
+            # and later the actor: it is restarted and training goes on to the budget
+            if restarted_at is not None and actor_killed_at is None and time.time() > restarted_at + 15:
+                os.kill(actor_pids[-1], signal.SIGKILL)
+                actor_killed_at = time.time()
         out = proc.stdout.read()
         assert proc.returncode == 0, out[-4000:]
         assert "env-step budget reached" in out, out[-4000:]
@@ -146,6 +157,8 @@ def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path)
     assert killed_at is not None and restarted_at is not None, (killed_at, aug_pids)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["instances"]["augmenter-0"]["restarts"] == 1, summary
+    assert actor_killed_at is not None and summary["instances"]["actor-0"]["restarts"] == 1, summary
+    assert len(actor_pids) == 2  # the restarted actor reported in
     learner = summary["instances"]["learner-0"]["counters"]
     assert BUDGET <= learner["env_steps"] < 10**6  # the real budget ended the run, not a forged heartbeat
     # nothing forged was accepted: the actor never acted with the rogue's weights ...
