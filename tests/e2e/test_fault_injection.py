@@ -24,7 +24,6 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.topics import (
-    EPISODE_ACKS,
     EPISODES_AUGMENTED,
     EPISODES_RAW,
     EVAL_REPORTS,
@@ -80,6 +79,45 @@ def inject(rogue, now: float) -> None:
         rogue.publish(REPLAY_GATE, gate, source="learner-0")
 
 
+class Faults:
+    """What the test observed (the run's own sealed heartbeats and raw episodes) and the fault
+    schedule: inject forgeries, scrape the counters, stop then kill the augmenter, later the actor."""
+
+    def __init__(self, rogue, base: int) -> None:
+        self.rogue, self.base = rogue, base
+        self.published: list[tuple[str, float]] = []  # raw episode ids as they went out (repeats included)
+        self.actor_versions: list[int] = []
+        self.pids: dict[str, list[int]] = {"actor": [], "augmenter": []}
+        self.counts: dict[str, dict] = {}
+        self.injected_at = self.stopped_at = self.killed_at = self.restarted_at = self.actor_killed_at = None
+
+    def beat(self, hb) -> None:
+        if hb.service == "actor":
+            self.actor_versions.append(hb.policy_version)
+        pids = self.pids.get(hb.service)
+        if pids is not None and hb.pid not in pids:
+            pids.append(hb.pid)
+            if hb.service == "augmenter" and self.killed_at is not None and self.restarted_at is None:
+                self.restarted_at = time.time()
+
+    def step(self, fresh: list[str], now: float) -> None:
+        self.published += [(eid, now) for eid in fresh]
+        if self.injected_at is None and len(self.published) >= 2:
+            inject(self.rogue, now)
+            self.injected_at = now
+        elif self.injected_at is not None and not self.counts and now > self.injected_at + 5:
+            self.counts = {svc: scrape(self.base + off) for svc, off in OFFSETS.items()}
+        elif self.counts and self.stopped_at is None:  # the augmenter stops: what comes now it cannot take
+            os.kill(self.pids["augmenter"][-1], signal.SIGSTOP)
+            self.stopped_at = now
+        elif self.stopped_at is not None and self.killed_at is None and fresh and now > self.stopped_at + 0.5:
+            os.kill(self.pids["augmenter"][-1], signal.SIGKILL)
+            self.killed_at = now
+        elif self.restarted_at is not None and self.actor_killed_at is None and now > self.restarted_at + 15:
+            os.kill(self.pids["actor"][-1], signal.SIGKILL)  # restarted too; training goes on
+            self.actor_killed_at = now
+
+
 @pytest.mark.timeout(420)
 def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path):
     port, base = find_free_port(), find_free_port_base(tuple(OFFSETS.values()))
@@ -92,57 +130,22 @@ def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path)
     proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)  # fmt: skip
     bus = rogue = None
-    published: list[tuple[str, float]] = []  # raw episode ids as they went out (repeats included)
-    actor_versions: list[int] = []
-    aug_pids: list[int] = []
-    stopped_at = killed_at = restarted_at = actor_killed_at = None
-    actor_pids: list[int] = []
-    counts: dict[str, dict] = {}
     try:
         bus = connect_to_run(port, proc)
         rogue = connect_to_run(port, proc)  # no run key: what any process on the network can do
         rogue.serve(
             WEIGHTS_LATEST, lambda p: build_weights(ROGUE_VERSION, run_id="rogue"), source="learner-9"
         )
+        f = Faults(rogue, base)
         raw = bus.subscribe(EPISODES_RAW, capacity=1024)
         status = bus.subscribe(STATUS, capacity=4096)
-        acks = bus.subscribe(EPISODE_ACKS, capacity=64)
-        injected_at = None
         deadline = time.monotonic() + 360
         while proc.poll() is None:
             assert time.monotonic() < deadline, "run did not finish"
-            now = time.time()
-            fresh = [d.message.episode_id for d in raw.drain() if d.sender]  # the run's own (sealed)
-            published += [(eid, now) for eid in fresh]
-            acks.drain()
             for d in [status.recv(timeout=0.1), *status.drain()]:
-                if d is None or not d.sender:  # only the run's own heartbeats (sealed; ours is not)
-                    continue
-                hb = d.message
-                if hb.service == "actor":
-                    actor_versions.append(hb.policy_version)
-                    if hb.pid not in actor_pids:
-                        actor_pids.append(hb.pid)
-                if hb.service == "augmenter" and hb.pid not in aug_pids:
-                    aug_pids.append(hb.pid)
-                    if killed_at is not None and restarted_at is None:
-                        restarted_at = time.time()
-            if injected_at is None and len(published) >= 2:
-                inject(rogue, time.time())
-                injected_at = time.time()
-            if injected_at is not None and not counts and time.time() > injected_at + 5:
-                counts = {svc: scrape(base + off) for svc, off in OFFSETS.items()}
-            # then stop the augmenter, and kill it once an episode went out that it cannot have taken
-            if counts and stopped_at is None and aug_pids:
-                os.kill(aug_pids[-1], signal.SIGSTOP)
-                stopped_at = time.time()
-            elif stopped_at is not None and killed_at is None and fresh and time.time() > stopped_at + 0.5:
-                os.kill(aug_pids[-1], signal.SIGKILL)
-                killed_at = time.time()
-            # and later the actor: it is restarted and training goes on to the budget
-            if restarted_at is not None and actor_killed_at is None and time.time() > restarted_at + 15:
-                os.kill(actor_pids[-1], signal.SIGKILL)
-                actor_killed_at = time.time()
+                if d is not None and d.sender:  # only the run's own heartbeats (sealed; ours is not)
+                    f.beat(d.message)
+            f.step([d.message.episode_id for d in raw.drain() if d.sender], time.time())
         out = proc.stdout.read()
         assert proc.returncode == 0, out[-4000:]
         assert "env-step budget reached" in out, out[-4000:]
@@ -154,18 +157,18 @@ def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path)
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait(10)
 
-    assert killed_at is not None and restarted_at is not None, (killed_at, aug_pids)
+    assert f.killed_at is not None and f.restarted_at is not None, (f.killed_at, f.pids)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["instances"]["augmenter-0"]["restarts"] == 1, summary
-    assert actor_killed_at is not None and summary["instances"]["actor-0"]["restarts"] == 1, summary
-    assert len(actor_pids) == 2  # the restarted actor reported in
+    assert f.actor_killed_at is not None and summary["instances"]["actor-0"]["restarts"] == 1, summary
+    assert len(f.pids["actor"]) == 2  # the restarted actor reported in
     learner = summary["instances"]["learner-0"]["counters"]
     assert BUDGET <= learner["env_steps"] < 10**6  # the real budget ended the run, not a forged heartbeat
     # nothing forged was accepted: the actor never acted with the rogue's weights ...
-    assert actor_versions and max(actor_versions) < ROGUE_VERSION
+    assert f.actor_versions and max(f.actor_versions) < ROGUE_VERSION
     # ... and every forgery was refused as unauthenticated where it arrived
     unauth = {svc: {t: v for (n, t), v in c.items() if n.endswith("unauthenticated_messages_total")}
-              for svc, c in counts.items()}  # fmt: skip
+              for svc, c in f.counts.items()}  # fmt: skip
     assert unauth["actor"].get("weights_announce", 0) >= 1, unauth
     assert unauth["actor"].get("replay_gate", 0) >= 3000, unauth
     assert unauth["augmenter"].get("episodes_raw", 0) >= 5, unauth
@@ -173,7 +176,7 @@ def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path)
     assert unauth["launcher"].get("status", 0) >= 1 and unauth["launcher"].get("eval_reports", 0) >= 1, unauth
     assert unauth["launcher"].get("episodes_raw", 0) >= 5, unauth  # the recorder
     # the killed augmenter's episode (and those published while it was down) went out again ...
-    repeats = [eid for eid, n in Counter(eid for eid, _ in published).items() if n > 1]
+    repeats = [eid for eid, n in Counter(eid for eid, _ in f.published).items() if n > 1]
     assert repeats, "no episode was published again after the augmenter was killed"
     # ... and every raw episode published before the restart settled is in replay exactly once
     _, replay, _ = checkpoint.load(run_dir / "learner" / "checkpoints")
@@ -181,6 +184,6 @@ def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path)
         str(e) for e, s in zip(replay["episode_id"], replay["source_episode_id"], strict=True) if e == s
     )
     assert all(n == 1 for n in stored.values())
-    settled = {eid for eid, at in published if at < restarted_at + 10}
+    settled = {eid for eid, at in f.published if at < f.restarted_at + 10}
     assert settled and settled <= set(stored), sorted(settled - set(stored))
     assert not any(eid.startswith("rogue") for eid in stored)
