@@ -15,6 +15,8 @@ from typing import Any, TypeVar
 
 import tyro
 
+from proto.msgpack_wire import DEFAULT_LIMITS, Limits
+from proto.topics import TopicKeyError, by_name
 from services.common.bus.zenoh_bus import ZenohConfig
 
 C = TypeVar("C")
@@ -38,6 +40,11 @@ class ServiceConfig:
     """Python logging level."""
     heartbeat_seconds: float = 1.0
     """Period of the status heartbeat."""
+    limits: Limits = DEFAULT_LIMITS
+    """Caps applied while decoding any received message (sizes, nesting, strings)."""
+    topic_caps: tuple[str, ...] = ()
+    """Per-topic size caps replacing the defaults (proto/README.md, Topics table), each
+    `TOPIC=BYTES`, e.g. `episodes_raw=134217728`; larger messages are refused and counted."""
     run_key_file: str = ""
     """The run's key (hex, owner-only file; `mea run` creates RUN_DIR/run.key): every message is sealed
     with it and only messages sealed with it by a service allowed on the topic are accepted. Empty:
@@ -48,6 +55,23 @@ class ServiceConfig:
             raise ValueError(f"log_format must be json or text, not {self.log_format!r}")
         if self.heartbeat_seconds <= 0:
             raise ValueError("heartbeat_seconds must be positive")
+        self.caps()  # refuse a malformed --service.topic-caps at start-up
+
+    def caps(self) -> dict[str, int]:
+        """``topic_caps`` as {topic name: bytes}; ValueError naming a bad entry."""
+        out = {}
+        for entry in self.topic_caps:
+            name, _, value = entry.partition("=")
+            try:
+                by_name(name)
+                out[name] = int(value)
+            except (TopicKeyError, ValueError):
+                raise ValueError(
+                    f"topic_caps entry {entry!r}: expected TOPIC=BYTES with a known topic"
+                ) from None
+            if out[name] <= 0:
+                raise ValueError(f"topic_caps entry {entry!r}: the cap must be positive")
+        return out
 
 
 def parse(cls: type[C], presets: Mapping[str, C], argv: Sequence[str], prog: str, description: str) -> C:

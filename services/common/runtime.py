@@ -154,6 +154,7 @@ class ServiceContext:
                 f"{self.service}: cannot serve /metrics on {self.cfg.metrics_addr}:{port}: {exc}"
             ) from None
         self.bus = self.bus_factory(self.cfg)
+        self.bus.limits, self.bus.caps = self.cfg.limits, self.cfg.caps()
         if key is not None:
             self.bus.authenticate(Credentials(key, self.service, self.instance))
         else:

@@ -40,3 +40,26 @@ def test_the_caps_hold_the_largest_legitimate_messages():
     bus.close()
     # a heartbeat with the longest detail it may carry stays far under the control cap
     assert len(beat("x" * 512).encode()) < STATUS.max_bytes / 100
+
+
+def test_a_configured_cap_replaces_the_topics_and_bad_entries_are_refused():
+    import pytest
+
+    from services.common.config import ServiceConfig
+
+    cfg = ServiceConfig(topic_caps=("status=300",))
+    bus = InProcBus()
+    bus.caps = cfg.caps()
+    sub = bus.subscribe(STATUS, capacity=4)
+    small, large = beat(), beat(detail="x" * 400)
+    assert len(small.encode()) < 300 < len(large.encode()) < STATUS.max_bytes
+    bus.publish(STATUS, large, service="test", instance="i-0")
+    bus.publish(STATUS, small, service="test", instance="i-1")
+    assert [d.parts["instance"] for d in sub.drain()] == [
+        "i-1"
+    ]  # the large one: under the default cap, over this one
+    assert bus.stats.bad[STATUS.name] == 1
+    bus.close()
+    for bad in ("nope=10", "status", "status=-1", "status=ten"):
+        with pytest.raises(ValueError, match="topic_caps"):
+            ServiceConfig(topic_caps=(bad,))

@@ -239,6 +239,8 @@ class Bus(ABC):
         self.on_bad_message: BadMessageHook | None = None
         self._reject_log = LogLimiter()
         self.credentials: Credentials | None = None
+        self.caps: dict[str, int] = {}
+        """Per-topic size caps replacing ``Topic.max_bytes`` (``ServiceConfig.topic_caps``)."""
 
     def authenticate(self, credentials: Credentials) -> None:
         """From now on seal what this bus sends and accept only what the run's services sealed
@@ -274,16 +276,18 @@ class Bus(ABC):
             raise ProtocolError("<sender>", why)
         return s.sender, s.body
 
+    def _check_size(self, topic: Topic, payload: bytes) -> None:
+        cap = self.caps.get(topic.name, topic.max_bytes)
+        if len(payload) > cap:
+            raise ProtocolError("<message>", f"{len(payload)} bytes over the {topic.name} cap {cap}")
+
     def admit(self, topic: Topic, key_expr: str, payload: bytes) -> bool:
         """Whether a payload is sealed for this run by a sender allowed here (always True without
         credentials); a refusal is counted like any bad message. Cheap for small messages."""
         if self.credentials is None:
             return True
         try:
-            if len(payload) > topic.max_bytes:
-                raise ProtocolError(
-                    "<message>", f"{len(payload)} bytes over the {topic.name} cap {topic.max_bytes}"
-                )
+            self._check_size(topic, payload)
             _, _, parts = parse(key_expr)
             self._open(topic, key_expr, parts, payload)
         except (ProtocolError, ValueError) as exc:
@@ -304,10 +308,7 @@ class Bus(ABC):
 
     def decode_delivery(self, topic: Topic, key_expr: str, payload: bytes) -> Delivery | None:
         try:
-            if len(payload) > topic.max_bytes:
-                raise ProtocolError(
-                    "<message>", f"{len(payload)} bytes over the {topic.name} cap {topic.max_bytes}"
-                )
+            self._check_size(topic, payload)
             _, _, parts = parse(key_expr)
             sender, body = self._open(topic, key_expr, parts, payload)
             msg = topic.message.decode(body, self.limits)  # type: ignore[union-attr]
