@@ -47,7 +47,8 @@ class Augmentation(Message):
     params: dict = spec(
         MapOf(Arr(("float32", "float64", "int64"), ("N",), finite=True)),
         "group parameters, 1-D arrays by name: `rotation` (1,) rad (rotated copies), `delta_r`, `delta_z`, "
-        "`delta_rot`, `delta_theta`, `eps` (H_p,) and `start` (1,) (MEA copies); see section 4",
+        "`delta_rot`, `delta_theta`, `eps` (H_p,) and `start` (1,) (MEA copies), `quarter_turns` (H_p,) "
+        "(discrete MEA copies); see section 4",
     )
 
 

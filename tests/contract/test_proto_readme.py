@@ -7,6 +7,7 @@ channel or constant added or changed in the code without the README following fa
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import math
 import re
@@ -22,6 +23,7 @@ from mcap.stream_reader import StreamReader
 import proto
 from proto.actions import DELTA_THETA, DELTA_XYZ
 from proto.seeds import MEA_COPY_SEED_OFFSET, SHARED_ROTATION_STREAM
+from services.augmenter.core.mea_discrete import MeaDiscreteSettings
 from services.augmenter.core.pipeline import (
     AUGMENTATION_PARAM_KEYS,
     AugmentSettings,
@@ -50,7 +52,7 @@ from services.observation.depth_image import DEFAULT_DEPTH_SPEC, depth_codes
 from services.observation.projection import DEFAULT_SPEC, quantize_depth
 from services.run_config import RunConfig, recording_metadata
 from tests.helpers import build_episode
-from tests.helpers.synthetic import synthetic_episode
+from tests.helpers.synthetic import synthetic_episode, synthetic_surgical_episode
 
 pytestmark = pytest.mark.contract
 
@@ -96,6 +98,13 @@ def produced_params() -> dict[str, set[str]]:
         raw, _ = synthetic_episode(seed)
         out, stats = augment_episode(raw, settings)
         assert stats.mea_made > 0, "the synthetic episode must give MEA copies"
+        for ep in out[1:]:
+            for key, value in ep.augmentation.params.items():
+                keys.setdefault(key, set()).add(value.dtype.name)
+    discrete = dataclasses.replace(settings, mea_discrete=MeaDiscreteSettings(copies=3))
+    for seed in range(2):  # the discrete-action task's MEA copies
+        out, stats = augment_episode(synthetic_surgical_episode(seed), discrete)
+        assert stats.mea_made > 0, "the synthetic surgical episode must give MEA copies"
         for ep in out[1:]:
             for key, value in ep.augmentation.params.items():
                 keys.setdefault(key, set()).add(value.dtype.name)

@@ -71,3 +71,62 @@ def synthetic_episode(seed: int, T: int = 20, xy: np.ndarray | None = None) -> t
         contacts=np.zeros((T + 1, 2), bool),
     )  # fmt: skip
     return ep, world
+
+
+SURGICAL_STEP = 0.015
+"""Sim metres per unit action of the synthetic surgical episodes (``MeaDiscreteSettings.delta_xyz``)."""
+
+
+def synthetic_surgical_episode(seed: int, P: int = 24, *, images: bool = True) -> Episode:
+    """Surgical Grasp Any as its env records it, obeying the transition prior exactly: the hybrid
+    P-controller's continuous approach (dx, dy, dz in [-1, 1], jaw open), a few discrete policy
+    steps (``proto.discrete_actions``: +-x, +-y, +-z, +-yaw toward the object), then the jaw toggle
+    that ends it successfully. One object fixed in the world; the pivot starts at x = -0.225 (the
+    reference's x ratio -0.9) inside the [-0.25, 0.25]^2 x [0, 0.35] workspace."""
+    from proto.discrete_actions import NAMES, TOGGLE, to_vector
+
+    rng = np.random.default_rng(seed)
+    obj = np.array([rng.uniform(-0.1, 0.2), rng.uniform(-0.2, 0.2), 0.03])
+    obj_cloud = obj + rng.normal(0.0, 0.01, (P, 3))
+    grip_local = rng.normal(0.0, 0.01, (P, 3))
+    grip_local -= grip_local.mean(0)
+    pos0 = np.array([-0.225, rng.uniform(-0.2, 0.2), rng.uniform(0.2, 0.3)])
+    target, pos, actions = obj + np.array([0.0, 0.0, 0.08]), pos0.copy(), []
+    while np.any(np.abs(target - pos) > 0.03) and len(actions) < 60:  # the P-controller (Kp 10)
+        a = np.zeros(5)
+        a[0], a[1:4] = 1.0, np.clip(10.0 * (target - pos), -1.0, 1.0)
+        actions.append(a)
+        pos = pos + SURGICAL_STEP * a[1:4]
+    for _ in range(int(rng.integers(3, 8))):  # policy steps inside the threshold
+        name = str(rng.choice(["+x", "-x", "+y", "-y", "+z", "-z", "+yaw", "-yaw"]))
+        actions.append(to_vector(NAMES.index(name), True).astype(np.float64))
+    actions.append(to_vector(TOGGLE, True).astype(np.float64))  # close: the grasp
+    actions = np.array(actions, np.float32)
+    T = len(actions)
+    poses = np.empty((T + 1, 4))
+    poses[0] = [*pos0, rng.uniform(-0.5, 0.5)]
+    for t, a in enumerate(actions.astype(np.float64)):
+        poses[t + 1, :3] = poses[t, :3] + SURGICAL_STEP * a[1:4]
+        poses[t + 1, 3] = poses[t, 3] + a[4] * math.pi / 4
+    points = np.empty((T + 1, 2, P, 3))
+    for t, (x, y, z, psi) in enumerate(poses):
+        c, s = math.cos(psi), math.sin(psi)
+        points[t, 0] = grip_local @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        points[t, 1] = obj_cloud - np.array([x, y, z])
+    jaw = np.ones(T + 1, np.float32)
+    jaw[-1] = 0.0
+    terminated = np.zeros(T, bool)
+    terminated[-1] = True
+    contacts = np.zeros((T + 1, 1), bool)
+    contacts[-1] = True
+    object_poses = np.zeros((T + 1, 1, 7), np.float32)
+    object_poses[:, 0, :3], object_poses[:, 0, 6] = obj, 1.0
+    pictures = rng.integers(0, 256, (T + 1, 3, 64, 64), dtype=np.uint8) if images else None
+    return Episode(
+        episode_id=f"sga-{seed}", task="surgical_grasp_any", seed=seed, actor_id="sga", policy_version=-1,
+        policy_kind="expert_direct", is_demo=True, created_at=1.0, segments=["gripper", "object_0"],
+        points=points.astype(np.float32), point_counts=np.full((T + 1, 2), P, np.int32), jaw=jaw, actions=actions,
+        rewards=np.r_[np.full(T - 1, -0.001), 1.0].astype(np.float32), terminated=terminated,
+        truncated=np.zeros(T, bool), gripper_pose=poses.astype(np.float32), object_poses=object_poses,
+        contacts=contacts, images=pictures,
+    )  # fmt: skip

@@ -25,12 +25,20 @@ Observations (``AugmentSettings.observation``)
     requires ``mea_on="none"`` (checked at construction rather than silently ignored, so a run
     configured with MEA on depth images fails loudly). ``reproject`` does not apply to ``depth``:
     its images are always attached (nothing downstream could make them).
+
+Discrete-action tasks (``mea_discrete.DISCRETE_MEA_TASKS``: Surgical Grasp Any)
+    The raw episode (with the env's own images) followed by its ``mea_discrete.copies`` (200) MEA
+    copies from ``mea_discrete.py`` (timestep phases, C4 actions); no isometric copies (the paper,
+    Sec. VI: the camera is not top-down) and ``observation`` does not apply. With ``reproject`` each
+    copy is re-rendered by ``discrete_reprojector(task)``, the one place the task's observation
+    pipeline is wired; where none is, copies carry no images.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +47,13 @@ from proto.episode import Episode
 from proto.seeds import MEA_COPY_SEED_OFFSET, SHARED_ROTATION_STREAM
 from services.augmenter.core.isometric import ROTATION_PARAM, compose_with_mea, draw_rotation, isometric_copy
 from services.augmenter.core.mea import MEA_PARAM_KEYS, MeaDraw, MeaSettings, augment
+from services.augmenter.core.mea_discrete import (
+    DISCRETE_MEA_TASKS,
+    MEA_DISCRETE_PARAM_KEYS,
+    DiscreteCounts,
+    MeaDiscreteSettings,
+    mea_discrete_copies,
+)
 from services.observation.depth_image import (
     DEFAULT_DEPTH_SPEC,
     DepthImageSpec,
@@ -50,9 +65,10 @@ from services.observation.projection import ProjectionSpec, segment_policy_image
 MEA_ON = ("demos", "successes", "all", "none")
 OBSERVATIONS = ("voxel", "depth")
 """Policy images: voxel projection of the point clouds, or the rendered depth image (Equi-RSAC)."""
-AUGMENTATION_PARAM_KEYS = (ROTATION_PARAM, *MEA_PARAM_KEYS)
+AUGMENTATION_PARAM_KEYS = tuple(dict.fromkeys((ROTATION_PARAM, *MEA_PARAM_KEYS, *MEA_DISCRETE_PARAM_KEYS)))
 """Every key the augmenter puts into ``Augmentation.params`` (isometric copies: ``rotation``; MEA
-copies: ``MEA_PARAM_KEYS``; MEA + isometric copies: both). proto/README.md documents each."""
+copies: ``MEA_PARAM_KEYS``; MEA + isometric copies: both; discrete MEA copies:
+``MEA_DISCRETE_PARAM_KEYS``). proto/README.md documents each."""
 
 
 @dataclass(frozen=True)
@@ -60,7 +76,8 @@ class AugmentSettings:
     """What the augmenter makes of each raw episode."""
 
     mea_copies: int = 6
-    """MEA copies per episode MEA applies to (paper: 6 for Equi-RSAC, 200 for GASv2)."""
+    """MEA copies per episode MEA applies to (paper: 6 for Equi-RSAC); the discrete-action tasks
+    take ``mea_discrete.copies`` (paper: 200 for GASv2)."""
     mea_on: str = "demos"
     """Which episodes get MEA: demos (the paper), successes, all (beyond the paper), none."""
     isometric_copies: int = 4
@@ -78,6 +95,8 @@ class AugmentSettings:
     """Base seed; each source episode's seed mixes it with a hash of the episode id."""
     mea: MeaSettings = field(default_factory=MeaSettings)
     """MEA phases, group ranges and feasibility limits."""
+    mea_discrete: MeaDiscreteSettings = field(default_factory=MeaDiscreteSettings)
+    """MEA of the discrete-action tasks (Surgical Grasp Any): h_p, copies, C4 rate, workspace."""
     projection: ProjectionSpec = field(default_factory=ProjectionSpec)
     """Voxel projection of the observations."""
     observation: str = "voxel"
@@ -102,8 +121,12 @@ class AugmentSettings:
             return self.success_isometric_copies
         return self.isometric_copies
 
+    def mea_count(self, ep: Episode) -> int:
+        """How many MEA copies ``ep`` gets when MEA applies to it."""
+        return self.mea_discrete.copies if ep.task in DISCRETE_MEA_TASKS else self.mea_copies
+
     def applies_mea(self, ep: Episode) -> bool:
-        if self.mea_copies == 0 or self.mea_on == "none":
+        if self.mea_count(ep) == 0 or self.mea_on == "none":
             return False
         success = ep.succeeded
         return {"demos": ep.is_demo and success, "successes": success, "all": True}[self.mea_on]
@@ -229,10 +252,46 @@ def _augment_depth(raw: Episode, s: AugmentSettings, seed: int) -> list[Episode]
     return out
 
 
+# --------------------------------------------------------------------------------------------
+# discrete-action tasks (Surgical Grasp Any)
+# --------------------------------------------------------------------------------------------
+
+
+def discrete_reprojector(task: str) -> Callable[[Episode], Episode] | None:
+    """The observation pipeline that re-renders MEA copies of ``task`` (``mea_discrete.Reproject``).
+
+    INTEGRATION POINT (issue 14): wire Surgical Grasp Any's DSA observation
+    (``services/observation/dsa.py``, ``dsa_image``) here once it lands: world clouds are
+    ``points + gripper_pose[:, None, None, :3]``, and the gripper/FSM/controller state rows come from
+    the source images the copy still carries. Until then: None, and the copies carry no images."""
+    del task
+    return None
+
+
+def _augment_discrete(raw: Episode, s: AugmentSettings, seed: int, stats: AugmentStats) -> list[Episode]:
+    """The raw episode and, where MEA applies, its discrete MEA copies (no isometric copies)."""
+    out = [raw]
+    if s.applies_mea(raw):
+        counts = DiscreteCounts()
+        reproject = discrete_reprojector(raw.task) if s.reproject else None
+        out += mea_discrete_copies(raw, s.mea_discrete, seed, reproject, counts=counts)
+        stats.mea_made += counts.made
+        stats.mea_empty += counts.given_up
+        stats.rejections += counts.redraws
+        stats.cuts += counts.cut
+    return out
+
+
 def augment_episode(raw: Episode, s: AugmentSettings) -> tuple[list[Episode], AugmentStats]:
-    """The raw episode followed by its isometric copies and MEA copies."""
+    """The raw episode followed by its isometric copies and MEA copies (discrete-action tasks: the
+    raw episode and its discrete MEA copies)."""
     stats = AugmentStats()
     seed = episode_seed(s.seed, raw.episode_id)
+    if raw.task in DISCRETE_MEA_TASKS:
+        out = _augment_discrete(raw, s, seed, stats)
+        stats.outputs = len(out)
+        stats.transitions = sum(e.num_steps for e in out)
+        return out, stats
     if s.observation == "depth":
         out = _augment_depth(raw, s, seed)
         stats.outputs = len(out)

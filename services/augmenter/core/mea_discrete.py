@@ -1,0 +1,337 @@
+"""MEA for the discrete-action surgical domain (Surgical Grasp Any): paper Sec. V and App. B, built
+backwards in time from the termination like ``mea.py``.
+
+Read beside the paper and the authors' GASv2 code (``tasks-and-baselines.md`` sections 5 and 7):
+
+* Phases (App. B, timestep criterion). ``H_p = max(0, H - h_p)``: the termination and the last
+  ``h_p`` transitions (the grasp) are kept as they are (trivial representation); the transitions
+  ``t < H_p`` are augmented. ``h_p = 5`` is the authors' code (every step but the last 5).
+* Structured actions (Sec. V-B, discrete). g_t is an element of C4 acting on the action's (dx, dy).
+  Actions in ``A'_d = {+-z, +-yaw, jaw}`` (``proto.discrete_actions.TRIVIAL``) are never changed.
+  Every other action is kept with probability ``1 - p_rotate`` and otherwise turned by k quarter
+  turns (counter-clockwise from above, ``proto.discrete_actions.rotate_c4``), k uniform in
+  {1, 2, 3}. The paper draws delta^rot uniformly from C4 = {0, pi/2, pi, 3 pi/2}, so a fourth of
+  its "rotated" actions are the identity and an action changes at rate 0.3 * 3/4 = 0.225; here
+  ``p_rotate`` is the rate at which an action actually changes (the 0.3 the paper and the authors'
+  ``--sym-action-noise 0.3`` name); ``p_rotate = 0.225`` gives the paper's literal draw. The jaw
+  component is never changed. (The authors' code differs: one C4 element per episode, and with
+  probability 0.3 an action replaced by a random translation; we follow the paper.)
+* The hybrid P-controller's approach steps (continuous (dx, dy, dz), jaw open; not in the paper,
+  whose action set has none): dz is trivial, (dx, dy) is turned by the same kind of draw, exactly
+  (a quarter turn permutes and negates coordinates, so the result stays in [-1, 1]^2 unclipped). A
+  step with (dx, dy) = (0, 0) is trivial.
+* Observations. Yaw actions are trivial, so the gripper's yaw and its cloud in the gripper-centric
+  frame (world orientation) are unchanged (Theta_t = 0). From the transition prior and the
+  requirement that the state at H_p is the real one (``mea.py``):
+      D_t = delta_xyz * sum_{j=t}^{H_p-1} (a^xyz_j - abar^xyz_j)     (D_t = 0 for t >= H_p)
+      object points  obar_t = o_t - D_t,   gripper pivot  pbar_t = p_t + D_t
+  so the object stays fixed in the world (``object_poses`` unchanged) and only the gripper moves; dz
+  is trivial, so D_t has no z part. Jaw, rewards and flags are unchanged. ``contacts`` are the
+  source's for t >= H_p and wherever D_t = 0 (the gripper is where it was), and False where the
+  copy's gripper is elsewhere (the non-trivial phase is the one without interaction).
+* Images. A moved gripper cloud must be re-rendered through the task's own observation pipeline
+  (the authors' Occup -> DSA -> ObsImage). That pipeline is injected into ``mea_discrete_copies``
+  as a callable; without one a copy carries no images.
+* Feasibility guards (implicit in the paper). (1) Every moved pivot ``pbar_t`` must lie inside the
+  env's pivot workspace, or the env would clip the move and break the transition prior: a copy that
+  leaves it is drawn again from scratch (rejection sampling, so a kept copy is a draw of the paper's
+  distribution conditioned on staying inside) at most ``max_redraws`` times, then given up (None).
+  (2) A source transition before H_p whose recorded pivot motion differs from ``delta_xyz * a_t`` by
+  more than ``prior_tolerance`` (clipped by the workspace, the instrument blocked) cannot be
+  augmented across: the copy starts after the last such step (``start``; rows before it are cut).
+
+Provenance: ``Augmentation.kind`` "mea" (a copy's task says which MEA made it; no isometric rotation
+composes with it in this domain, Sec. VI), ``phase_split`` H_p in the copy's rows, ``params``
+``quarter_turns`` (H_p,) int64 (k per step, 0 where kept) and ``start`` (1,) int64.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from proto.actions import JAW
+from proto.discrete_actions import TRIVIAL, index_of, rotate_c4, to_vector
+from proto.episode import Augmentation, Episode
+from proto.seeds import MEA_COPY_SEED_OFFSET
+from services.augmenter.core.mea import START_PARAM
+
+DISCRETE_MEA_TASKS = ("surgical_grasp_any",)
+"""Tasks whose MEA copies this module makes (timestep phases, C4 actions, no isometric copies)."""
+QUARTER_TURNS_PARAM = "quarter_turns"
+"""``Augmentation.params`` key of a discrete MEA copy: (H_p,) int64, the quarter turns k in {0..3}
+applied to each non-trivial-phase step's (dx, dy) (0: kept)."""
+MEA_DISCRETE_PARAM_KEYS = (QUARTER_TURNS_PARAM, START_PARAM)
+"""Every ``Augmentation.params`` key a discrete MEA copy carries (proto/README.md documents each)."""
+
+Reproject = Callable[[Episode], Episode]
+"""Re-renders a copy's images from its (moved) point clouds: gets the copy with the source's images
+(rows ``start``..T) still attached, so that it can read what MEA leaves unchanged (the gripper,
+FSM and controller state rows), and returns the copy with images it rendered itself."""
+
+
+@dataclass(frozen=True)
+class MeaDiscreteSettings:
+    """Phases, group draws and feasibility limits of discrete MEA (defaults: Surgical Grasp Any)."""
+
+    h_p: int = 5
+    """Transitions kept at the end: H_p = H - h_p (the authors' code keeps the last 5 steps)."""
+    copies: int = 200
+    """K: MEA copies per episode MEA applies to (the paper: 200 per demonstration)."""
+    p_rotate: float = 0.3
+    """Probability that a non-trivial action is turned (by 1, 2 or 3 quarter turns)."""
+    delta_xyz: float = 0.015
+    """Sim metres the pivot moves per unit of dx, dy or dz. Must equal the env's step (0.05 m world
+    step x 0.3 discrete scale); the transition prior D_t rests on it."""
+    pivot_low: tuple[float, float, float] = (-0.25, -0.25, 0.0)
+    """Lower bounds of the gripper pivot (x, y, z), sim metres: the 0.5 x 0.5 x 0.35 workspace
+    centred at x = y = 0 above z = 0. Must equal the env's clipping bounds of ``gripper_pose``."""
+    pivot_high: tuple[float, float, float] = (0.25, 0.25, 0.35)
+    """Upper bounds of the gripper pivot (x, y, z), sim metres (must equal the env's)."""
+    max_redraws: int = 20
+    """Fresh draws of a copy that left the workspace before it is given up."""
+    prior_tolerance: float | None = 0.003
+    """Recorded pivot motion may differ from ``delta_xyz * a`` by this much (m, a fifth of a step)
+    and still count as free; None: trust every recorded step. To be tightened to the env's
+    measured noise floor (``mea audit``)."""
+
+    def __post_init__(self) -> None:
+        if self.h_p < 0 or self.copies < 0 or self.max_redraws < 0:
+            raise ValueError("h_p, copies and max_redraws must be >= 0")
+        if not 0.0 <= self.p_rotate <= 1.0:
+            raise ValueError(f"p_rotate must be in [0, 1], got {self.p_rotate}")
+        if self.delta_xyz <= 0.0 or not np.all(np.less(self.pivot_low, self.pivot_high)):
+            raise ValueError("delta_xyz must be > 0 and pivot_low < pivot_high")
+
+
+@dataclass
+class DiscreteCounts:
+    """What the guards did over some copies (for the augmenter's metrics)."""
+
+    made: int = 0
+    given_up: int = 0  # copies that left the workspace on every draw, or had no step to augment
+    redraws: int = 0  # draws refused by the workspace guard
+    cut: int = 0  # copies cut short by the prior guard (start > 0)
+
+
+# --------------------------------------------------------------------------------------------
+# phases and guards
+# --------------------------------------------------------------------------------------------
+
+
+def phase_split(ep: Episode, s: MeaDiscreteSettings) -> int:
+    """H_p = max(0, H - h_p): the first transition kept as it is."""
+    return max(0, ep.num_steps - s.h_p)
+
+
+def free_motion_start(ep: Episode, hp: int, s: MeaDiscreteSettings) -> int:
+    """First step from which every transition before H_p moved the pivot by ``delta_xyz * a``
+    (within ``prior_tolerance``); 0 when the guard is off."""
+    if s.prior_tolerance is None or hp == 0:
+        return 0
+    moved = np.diff(ep.gripper_pose[: hp + 1, :3].astype(np.float64), axis=0)
+    commanded = ep.actions[:hp, 1:4].astype(np.float64) * s.delta_xyz
+    bad = np.nonzero(np.linalg.norm(moved - commanded, axis=1) > s.prior_tolerance)[0]
+    return int(bad[-1]) + 1 if len(bad) else 0
+
+
+def inside(pos: np.ndarray, s: MeaDiscreteSettings) -> np.ndarray:
+    """Per row of ``pos`` (..., 3): the pivot lies inside the workspace (bounds included)."""
+    lo, hi = np.asarray(s.pivot_low) - 1e-9, np.asarray(s.pivot_high) + 1e-9
+    return np.all((pos >= lo) & (pos <= hi), axis=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# structured actions
+# --------------------------------------------------------------------------------------------
+
+
+def _turn_xy(xy: np.ndarray, k: int) -> np.ndarray:
+    """(dx, dy) rows turned by k quarter turns counter-clockwise, exactly (+0.0, never -0.0)."""
+    x, y = xy[:, 0], xy[:, 1]
+    turned = ((x, y), (-y, x), (-x, -y), (y, -x))[k % 4]
+    return np.stack(turned, axis=1) + np.float32(0.0)
+
+
+def rotations(actions: np.ndarray, hp: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every step t < ``hp`` turned by k = 0..3 quarter turns, (hp, 4, 5) float32, and which steps
+    are non-trivial, (hp,) bool. A discrete step is turned by ``rotate_c4`` (identity on A'_d); a
+    continuous one (the P-controller) has its (dx, dy) turned; jaw, dz and dtheta never change."""
+    a = np.asarray(actions[:hp], np.float32)
+    table = np.repeat(a[:, None, :], 4, axis=1)
+    for k in range(1, 4):
+        table[:, k, 1:3] = _turn_xy(a[:, 1:3], k)
+    nontrivial = np.any(a[:, 1:3] != 0.0, axis=1)
+    for t in range(hp):
+        jaw_open = bool(a[t, JAW] > 0)  # every discrete action but the toggle repeats the jaw command
+        index = index_of(a[t], jaw_open)
+        if index is None:  # continuous, or the toggle (no (dx, dy): trivial either way)
+            continue
+        nontrivial[t] = index not in TRIVIAL
+        table[t] = [to_vector(rotate_c4(index, k), jaw_open) for k in range(4)]
+    table[:, 0] = a  # k = 0 is the source's action, bit for bit
+    return table, nontrivial
+
+
+def _draw(nontrivial: np.ndarray, rng: np.random.Generator, p: float) -> np.ndarray:
+    """Quarter turns per step: 0 for trivial steps, else 1..3 with probability ``p``."""
+    n = len(nontrivial)
+    turn = rng.random(n) < p
+    k = rng.integers(1, 4, size=n)
+    return np.where(nontrivial & turn, k, 0).astype(np.int64)
+
+
+def _pick(actions: np.ndarray, table: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """abar (T, 5) float32: ``table[t, k_t]`` for t < len(k), the source's action after."""
+    abar = np.array(actions, np.float32, copy=True)
+    abar[: len(k)] = table[np.arange(len(k)), k]
+    return abar
+
+
+def draw_actions(
+    actions: np.ndarray, hp: int, rng: np.random.Generator, s: MeaDiscreteSettings
+) -> tuple[np.ndarray, np.ndarray]:
+    """abar (T, 5) float32 (the source's from ``hp`` on) and the quarter turns k (hp,) int64."""
+    table, nontrivial = rotations(actions, hp)
+    k = _draw(nontrivial, rng, s.p_rotate)
+    return _pick(actions, table, k), k
+
+
+# --------------------------------------------------------------------------------------------
+# the backward pass and the copy
+# --------------------------------------------------------------------------------------------
+
+
+def offsets(actions: np.ndarray, abar: np.ndarray, hp: int, delta_xyz: float) -> np.ndarray:
+    """D_t (T+1, 3) float64: delta_xyz * sum_{j=t}^{hp-1} (a_j - abar_j) over xyz, 0 from ``hp`` on."""
+    diff = np.zeros((len(actions) + 1, 3))
+    diff[:hp] = np.asarray(actions[:hp, 1:4], np.float64) - np.asarray(abar[:hp, 1:4], np.float64)
+    return delta_xyz * np.cumsum(diff[::-1], axis=0)[::-1]
+
+
+def cut(ep: Episode, start: int) -> Episode:
+    """``ep`` from step ``start`` on (observation rows start..T, transitions start..T-1)."""
+    if start == 0:
+        return ep
+    obs = ("points", "point_counts", "jaw", "gripper_pose", "object_poses", "contacts")
+    steps = ("actions", "rewards", "terminated", "truncated")
+    arrays = {name: np.asarray(getattr(ep, name))[start:] for name in (*obs, *steps)}
+    images = None if ep.images is None else ep.images[start:]
+    return dataclasses.replace(ep, images=images, **arrays)
+
+
+def moved_arrays(ep: Episode, abar: np.ndarray, hp: int, s: MeaDiscreteSettings) -> dict[str, np.ndarray]:
+    """The copy's arrays for actions ``abar`` (``ep`` already cut at ``start``): objects translated
+    by -D_t in the gripper frame, pivot moved by +D_t, contacts dropped where it moved."""
+    D = offsets(ep.actions, abar, hp, s.delta_xyz)[:hp]
+    points = np.array(ep.points, np.float32, copy=True)
+    points[:hp, 1:] = (points[:hp, 1:].astype(np.float64) - D[:, None, None, :]).astype(np.float32)
+    pose = np.array(ep.gripper_pose, np.float32, copy=True)
+    pose[:hp, :3] = (pose[:hp, :3].astype(np.float64) + D).astype(np.float32)
+    contacts = np.array(ep.contacts, bool, copy=True)
+    contacts[:hp][np.any(D != 0.0, axis=1)] = False
+    return {"points": points, "gripper_pose": pose, "contacts": contacts, "actions": abar.astype(np.float32)}
+
+
+@dataclass
+class DiscreteDraw:
+    """One copy's draw: the steps kept, the actions and quarter turns drawn, the guards' work."""
+
+    start: int  # first source step kept
+    hp: int  # H_p in the copy's rows (the source's minus start)
+    abar: np.ndarray | None  # (T - start, 5) float32; None when given up
+    quarter_turns: np.ndarray | None  # (hp,) int64
+    redraws: int  # draws refused by the workspace guard
+
+
+def draw_copy(ep: Episode, s: MeaDiscreteSettings, rng: np.random.Generator) -> tuple[Episode, DiscreteDraw]:
+    """``ep`` cut at the prior guard's start, and actions drawn until the moved pivot stays inside
+    the workspace (``abar`` None when no step is left to augment or every draw left it)."""
+    hp_source = phase_split(ep, s)
+    start = free_motion_start(ep, hp_source, s)
+    sub, hp = cut(ep, start), hp_source - start
+    if hp < 1:
+        return sub, DiscreteDraw(start, 0, None, None, 0)
+    table, nontrivial = rotations(sub.actions, hp)
+    pivot = sub.gripper_pose[:hp, :3].astype(np.float64)
+    for attempt in range(s.max_redraws + 1):
+        k = _draw(nontrivial, rng, s.p_rotate)
+        abar = _pick(sub.actions, table, k)
+        D = offsets(sub.actions, abar, hp, s.delta_xyz)[:hp]
+        moved = np.any(D != 0.0, axis=1)
+        if np.all(inside(pivot + D, s) | ~moved):
+            return sub, DiscreteDraw(start, hp, abar, k, attempt)
+    return sub, DiscreteDraw(start, hp, None, None, s.max_redraws + 1)
+
+
+def build_copy(
+    sub: Episode, draw: DiscreteDraw, s: MeaDiscreteSettings, *, source_id: str, seed: int, copy_index: int,
+    episode_id: str,
+) -> Episode:  # fmt: skip
+    """The copy of a successful draw (images None: the re-projection attaches them)."""
+    params = {
+        QUARTER_TURNS_PARAM: np.asarray(draw.quarter_turns, np.int64).copy(),
+        START_PARAM: np.array([draw.start], np.int64),
+    }
+    aug = Augmentation(source_episode_id=source_id, kind="mea", seed=seed, copy_index=copy_index,
+                       phase_split=draw.hp, params=params)  # fmt: skip
+    arrays = moved_arrays(sub, draw.abar, draw.hp, s)
+    return dataclasses.replace(sub, episode_id=episode_id, images=None, augmentation=aug, **arrays)
+
+
+def copy_rng(seed: int, copy_index: int) -> np.random.Generator:
+    """The generator of MEA copy ``copy_index`` (the pipeline's ``mea_copy_rng`` convention)."""
+    return np.random.default_rng([seed, MEA_COPY_SEED_OFFSET + copy_index])
+
+
+def mea_discrete_copy(
+    ep: Episode, s: MeaDiscreteSettings, rng: np.random.Generator, copy_index: int, *, seed: int,
+    episode_id: str | None = None,
+) -> Episode | None:  # fmt: skip
+    """One discrete MEA copy of ``ep`` drawn from ``rng`` (None when given up); ``seed`` is recorded
+    as its provenance, ``episode_id`` defaults to ``<ep id>.mea<copy_index>``."""
+    sub, draw = draw_copy(ep, s, rng)
+    if draw.abar is None:
+        return None
+    name = f"{ep.episode_id}.mea{copy_index}" if episode_id is None else episode_id
+    return build_copy(
+        sub, draw, s, source_id=ep.episode_id, seed=seed, copy_index=copy_index, episode_id=name
+    )
+
+
+def mea_discrete_copies(
+    ep: Episode, s: MeaDiscreteSettings, seed: int, reproject: Reproject | None = None, *,
+    counts: DiscreteCounts | None = None,
+) -> list[Episode]:  # fmt: skip
+    """The kept copies among ``s.copies`` draws, copy k from ``default_rng([seed, 1_000_001 + k])``;
+    each re-rendered by ``reproject`` when given, else without images. ``counts`` gets the guards'
+    work added."""
+    counts = DiscreteCounts() if counts is None else counts
+    out = []
+    for k in range(s.copies):
+        sub, draw = draw_copy(ep, s, copy_rng(seed, k))
+        counts.redraws += draw.redraws
+        if draw.abar is None:
+            counts.given_up += 1
+            continue
+        counts.cut += int(draw.start > 0)
+        copy = build_copy(sub, draw, s, source_id=ep.episode_id, seed=seed, copy_index=k,
+                          episode_id=f"{ep.episode_id}.mea{k}")  # fmt: skip
+        if reproject is not None:
+            copy = _reprojected(reproject, dataclasses.replace(copy, images=sub.images))
+        out.append(copy)
+    counts.made += len(out)
+    return out
+
+
+def _reprojected(reproject: Reproject, copy: Episode) -> Episode:
+    """``reproject(copy)``, checked to be the same copy with one image per observation row."""
+    out = reproject(copy)
+    if out.episode_id != copy.episode_id or out.num_steps != copy.num_steps or out.images is None:
+        raise ValueError(f"reproject must return {copy.episode_id} with its images rendered")
+    if len(out.images) != out.num_steps + 1:
+        raise ValueError(f"reproject gave {len(out.images)} images for {out.num_steps + 1} rows")
+    return out
