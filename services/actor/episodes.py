@@ -34,7 +34,7 @@ class EpisodeBuilder:
 
     @property
     def success(self) -> bool:
-        return succeeded(self.terminated)
+        return succeeded(self.terminated, self.rewards)
 
     def finish(self, episode_id: str) -> Episode:
         if len(self.obs) != len(self.actions) + 1 or not self.actions:
