@@ -256,3 +256,25 @@ def test_a_failed_grasp_terminates_and_is_no_success(env):
     assert b.terminated[-1] and not any(b.truncated) and b.rewards[-1] == pytest.approx(-0.1)
     assert not b.success and len(b.actions) < env.settings.max_steps
     assert b.obs[-1].fsm_state == 4  # done_fail
+
+
+@pytest.mark.timeout(60)
+def test_domain_randomisation_is_drawn_from_the_seed(env):
+    from services.tasks.surgical.settings import RandomisationSettings
+
+    dr = SurgicalGraspEnv(SurgicalSettings(camera=SMALL, randomisation=RandomisationSettings(enabled=True)))
+    try:
+        indices = [NAMES.index("+x")] * 8
+        first = _rollout(dr, 4, indices)
+        pose = dr.camera_pose
+        again = _rollout(dr, 4, indices)
+        for a, b in zip(first, again, strict=True):
+            _same(a, b)
+        assert dr.camera_pose == pose and pose.distance != 0.0
+        assert _rollout(dr, 5, [])[0].point_counts.tolist() != first[0].point_counts.tolist()
+        plain = _rollout(env, 4, indices)
+        assert not np.array_equal(plain[0].points, first[0].points)  # camera and image noise
+        np.testing.assert_array_equal(plain[0].object_poses, first[0].object_poses)  # same scene
+        assert not np.array_equal(plain[-1].gripper_pose, first[-1].gripper_pose)  # action noise
+    finally:
+        dr.close()

@@ -111,6 +111,7 @@ class SurgicalGraspEnv:
         self.trials, self.grasped, self.failed = 0, False, False
         self.fsm = "prog_norm"
         self._err: np.ndarray | None = None
+        self.camera_pose = CameraPose()
 
     # --- set-up -------------------------------------------------------------------------------
     def _calibrate(self) -> float:
@@ -150,10 +151,10 @@ class SurgicalGraspEnv:
         s = self.settings
         placement = draw(s, np.random.default_rng(self.seed))
         self.scene.build(placement)
-        pose = CameraPose()
+        self.camera_pose = CameraPose()  # the episode's camera offsets (domain randomisation), for the record
         if s.randomisation.enabled:
-            pose = CameraPose.draw(s.randomisation, np.random.default_rng([self.seed, 7]))
-        self.camera.set_pose(pose)
+            self.camera_pose = CameraPose.draw(s.randomisation, np.random.default_rng([self.seed, 7]))
+        self.camera.set_pose(self.camera_pose)
         for _ in range(SETTLE_STEPS):
             self.step_physics()
         self.trials, self.grasped, self.failed = 0, False, False
