@@ -25,10 +25,15 @@ OBJECT_SYMMETRY = {"block_pull": 4, "block_pick": 4, "drawer_open": 1, "surgical
 ``object_poses`` means the same body placement modulo 2 pi / n (square blocks 4, a drawer 1)."""
 
 
-def succeeded(terminated) -> bool:
-    """The one definition of a successful episode: its last step terminated (a task ends early only
-    on success; a time limit sets ``truncated`` instead)."""
-    return bool(len(terminated) > 0 and terminated[-1])
+def succeeded(terminated, rewards=None) -> bool:
+    """The one definition of a successful episode: its last step terminated, and (where the rewards
+    are given) not with a negative reward. The general-manipulation tasks end early only on success;
+    ``surgical_grasp_any`` also ends on a failed grasp, which it rewards with -0.1; a time limit sets
+    ``truncated`` instead. Without the rewards, a terminated end counts as success (right for the
+    general tasks only)."""
+    if len(terminated) == 0 or not terminated[-1]:
+        return False
+    return rewards is None or float(rewards[-1]) >= 0.0
 
 
 @dataclass(frozen=True)
@@ -89,7 +94,11 @@ class Episode(Message):
         "normalised actions (jaw, dx, dy, dz, dtheta)",
     )
     rewards: np.ndarray = spec(Arr(("float32",), ("T",), finite=True), "reward received after each action")
-    terminated: np.ndarray = spec(Arr(("bool",), ("T",)), "true on the step that ended the task (success)")
+    terminated: np.ndarray = spec(
+        Arr(("bool",), ("T",)),
+        "true on the step that ended the task: success, or a failure that ends it with a negative reward "
+        "(`surgical_grasp_any`: a failed grasp, -0.1)",
+    )
     truncated: np.ndarray = spec(Arr(("bool",), ("T",)), "true on the step that hit the time limit")
     gripper_pose: np.ndarray = spec(
         Arr(("float32",), ("T+1", 4), finite=True),
@@ -124,8 +133,8 @@ class Episode(Message):
 
     @property
     def succeeded(self) -> bool:
-        """Whether the episode succeeded (``succeeded(terminated)``)."""
-        return succeeded(self.terminated)
+        """Whether the episode succeeded (``succeeded(terminated, rewards)``)."""
+        return succeeded(self.terminated, self.rewards)
 
     def validate(self, dims: dict[str, int]) -> None:
         if dims.get("T", 0) < 1:

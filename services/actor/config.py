@@ -17,7 +17,7 @@ class ActorConfig:
     """Simulate a task and publish whole episodes."""
 
     task: str = "block_pull"
-    """Task: block_pull, block_pick or drawer_open."""
+    """Task: block_pull, block_pick, drawer_open or surgical_grasp_any."""
     policy: str = "random"
     """Policy source after the demonstrations: expert, random or learned (latest broadcast weights)."""
     demos: int = 0
@@ -78,5 +78,7 @@ class ActorConfig:
 PRESETS = {"default": ActorConfig()}
 
 
-def expert_style(cfg_style: str, k: int) -> str:
-    return cfg_style if cfg_style != "alternate" else EXPERT_STYLES[k % 2]
+def expert_style(cfg_style: str, k: int, styles: tuple[str, ...] = EXPERT_STYLES) -> str:
+    """Style of the k-th expert episode: ``cfg_style``, or with ``alternate`` the task's ``styles`` in
+    turn (the general tasks alternate probe and direct; a task with one style keeps it)."""
+    return cfg_style if cfg_style != "alternate" else styles[k % len(styles)]

@@ -1,8 +1,9 @@
 """`mea demos`: record scripted demonstrations of a task to an MCAP file.
 
 Styles alternate (probe: touch the fixed object first; direct: go to the movable one), and only
-successful episodes are kept, as in Equi-RSAC. The file has one channel per message type with
-its JSON Schema embedded, plus the resolved config and the seeds as metadata.
+successful episodes are kept, as in Equi-RSAC. ``surgical_grasp_any`` has one style, its discrete
+oracle (direct). The file has one channel per message type with its JSON Schema embedded, plus the
+resolved config and the seeds as metadata.
 """
 
 from __future__ import annotations
@@ -28,13 +29,13 @@ class DemosConfig:
     """Record scripted demonstrations to MCAP."""
 
     task: str = "block_pull"
-    """Task: block_pull, block_pick or drawer_open."""
+    """Task: block_pull, block_pick, drawer_open or surgical_grasp_any."""
     n: int = 2
     """Successful demonstrations to record."""
     out: Path = Path("demos.mcap")
     """Output file (written to OUT.tmp, renamed when complete)."""
     style: str = "alternate"
-    """alternate, probe or direct."""
+    """alternate, probe or direct (surgical_grasp_any has only direct: its oracle)."""
     seed_base: int = 0
     """First seed."""
     max_attempts: int = 0

@@ -34,7 +34,7 @@ class EpisodeBuilder:
 
     @property
     def success(self) -> bool:
-        return succeeded(self.terminated)
+        return succeeded(self.terminated, self.rewards)
 
     def finish(self, episode_id: str) -> Episode:
         if len(self.obs) != len(self.actions) + 1 or not self.actions:
@@ -42,6 +42,8 @@ class EpisodeBuilder:
         images = None
         if self.obs[0].depth_image is not None:
             images = np.stack([o.depth_image for o in self.obs])[:, None].astype(np.float16)
+        elif self.obs[0].image is not None:  # a policy image the env renders itself (surgical DSA)
+            images = np.stack([o.image for o in self.obs]).astype(np.uint8)
         return Episode(
             episode_id=episode_id,
             created_at=time.time(),

@@ -12,7 +12,7 @@ from services.actor.config import ActorConfig, expert_style
 from services.actor.episodes import EpisodeBuilder
 from services.observation.depth_image import policy_images as depth_policy_images
 from services.observation.projection import segment_policy_images
-from services.tasks import ManipulationEnv, make_env
+from services.tasks import EXPERT_STYLES, ManipulationEnv, make_env
 from services.tasks.env import Observation
 
 
@@ -43,18 +43,21 @@ def policy_input(obs: Observation, observation: str) -> np.ndarray:
 def run_episode(
     env: ManipulationEnv, seed: int, act, builder: EpisodeBuilder, on_step=None
 ) -> EpisodeBuilder:
-    """Roll out one episode with ``act(obs) -> action``; ``on_step(seconds)`` sees each step's time."""
+    """Roll out one episode with ``act(obs) -> action``; ``on_step(seconds)`` sees each step's time.
+
+    The episode records the action the env reports as executed (``info['executed_action']``) where it
+    reports one: in ``surgical_grasp_any`` the hybrid controller's approach replaces the policy's."""
     obs = env.reset(seed)
     builder.meta["fixed_object"] = env.task.fixed_index()  # privileged, for the learner's critic
     builder.observe(obs)
     for _ in range(env.settings.max_steps):
         t0 = time.perf_counter()
         action = act(obs)
-        obs, reward, terminated, truncated, _ = env.step(action)
+        obs, reward, terminated, truncated, info = env.step(action)
         if on_step is not None:
             on_step(time.perf_counter() - t0)
         builder.observe(obs)
-        builder.step(action, reward, terminated, truncated)
+        builder.step(info.get("executed_action", action), reward, terminated, truncated)
         if terminated or truncated:
             break
     return builder
@@ -80,7 +83,7 @@ class Actor:
                               policy_kind=kind, is_demo=is_demo, segments=self.env.segment_names)  # fmt: skip
 
     def expert_episode(self, k: int, on_step=None) -> EpisodeBuilder:
-        style = expert_style(self.cfg.expert_style, k)
+        style = expert_style(self.cfg.expert_style, k, getattr(self.env.task, "expert_styles", EXPERT_STYLES))
         seed = self.next_seed()
         expert_rng = np.random.default_rng([seed, 3])
         holder: dict = {}
@@ -93,9 +96,12 @@ class Actor:
         return run_episode(self.env, seed, act, self.builder(seed, f"expert_{style}", -1, True), on_step)
 
     def random_episode(self, on_step=None) -> EpisodeBuilder:
+        """Uniform actions in [-1, 1]^5, or the env's own random action where it has one (the
+        surgical task's: a uniformly drawn discrete action)."""
         seed = self.next_seed()
-        return run_episode(self.env, seed, lambda _o: self.rng.uniform(-1, 1, 5), self.builder(seed, "random", -1, False),
-                           on_step)  # fmt: skip
+        sample = getattr(self.env, "sample_action", None)
+        act = (lambda _o: sample(self.rng)) if sample is not None else (lambda _o: self.rng.uniform(-1, 1, 5))
+        return run_episode(self.env, seed, act, self.builder(seed, "random", -1, False), on_step)
 
     def learned_episode(self, policy, on_step=None) -> EpisodeBuilder:
         """One episode with a ``PolicyRuntime`` (stochastic; its recurrent state starts afresh)."""

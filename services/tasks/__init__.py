@@ -1,7 +1,10 @@
 """Simulated tasks (pybullet only: no transport, metrics or storage imports).
 
-``make_env(name)`` builds a ManipulationEnv for a registered task. Task names are the wire's
-(:data:`proto.episode.TASKS`); :data:`TASK_CLASSES` holds the ones implemented here.
+``make_env(name)`` builds the env of a registered task: a ManipulationEnv around the task for the
+general-manipulation tasks, or the task's own env where its class has a ``make_env`` factory
+(``surgical_grasp_any``: discrete actions, hybrid control, FSM rewards). Task names are the wire's
+(:data:`proto.episode.TASKS`); :data:`TASK_CLASSES` holds the ones implemented here and
+:data:`GENERAL_TASKS` those of the general-manipulation domain.
 """
 
 from __future__ import annotations
@@ -14,25 +17,37 @@ TASK_CLASSES: dict[str, str] = {
     "block_pull": "services.tasks.block_pull:BlockPull",
     "block_pick": "services.tasks.block_pick:BlockPick",
     "drawer_open": "services.tasks.drawer_open:DrawerOpen",
+    "surgical_grasp_any": "services.tasks.surgical.env:SurgicalGraspAny",
 }
 """Wire task name (one of :data:`proto.episode.TASKS`) -> ``"module:Class"`` for every task implemented
 here (the wire also names planned ones). Modules import lazily, so a task's import cost is paid only
 when it is used."""
+GENERAL_TASKS: tuple[str, ...] = ("block_pull", "block_pick", "drawer_open")
+"""The general-manipulation domain: ManipulationEnv tasks with two look-alike objects (one immovable)
+and probe/direct experts. The others bring their own env."""
 
 
-def task_class(name: str) -> type[Task]:
+def task_class(name: str) -> type:
+    """The registered class of ``name``: a :class:`Task` (general tasks) or a task with its own env."""
     if name not in TASK_CLASSES:
         raise ValueError(f"unknown task {name!r}; choose from {sorted(TASK_CLASSES)}")
     module, _, cls = TASK_CLASSES[name].partition(":")
     return getattr(importlib.import_module(module), cls)
 
 
-def make_env(name: str, settings: EnvSettings | None = None) -> ManipulationEnv:
-    return ManipulationEnv(task_class(name)(), settings or EnvSettings())
+def make_env(name: str, settings=None):
+    """The env of task ``name``. ``settings``: EnvSettings (every task takes them; the surgical task
+    keeps their points per segment) or the task's own settings class."""
+    cls = task_class(name)
+    factory = getattr(cls, "make_env", None)
+    if factory is not None:
+        return factory(settings)
+    return ManipulationEnv(cls(), settings or EnvSettings())
 
 
 __all__ = [
     "EXPERT_STYLES",
+    "GENERAL_TASKS",
     "TASK_CLASSES",
     "EnvSettings",
     "ManipulationEnv",

@@ -67,6 +67,9 @@ class Observation:
     object_poses: np.ndarray  # (M, 7) float32 world pose per object: privileged
     contacts: np.ndarray  # (M,) bool gripper touches object i: privileged
     depth_image: np.ndarray | None = None  # (N, N) float32 baseline image, when enabled
+    image: np.ndarray | None = None  # (C, H, W) uint8 policy image the env renders itself (surgical DSA)
+    controller_state: int = 0  # 1: a built-in controller takes the next action (surgical hybrid control)
+    fsm_state: int | None = None  # index of the task's FSM state, where it has one (surgical)
 
 
 class Task(ABC):

@@ -1,9 +1,14 @@
 """gymnasium API for the tasks, so other RL libraries can use them.
 
-Ids: ``mea/BlockPull-v0``, ``mea/BlockPick-v0``, ``mea/DrawerOpen-v0`` (registered on import of this
-module, and through the ``gymnasium.envs`` entry point when the package is installed).
+Ids: ``mea/BlockPull-v0``, ``mea/BlockPick-v0``, ``mea/DrawerOpen-v0``, ``mea/SurgicalGraspAny-v0``
+(registered on import of this module, and through the ``gymnasium.envs`` entry point when the
+package is installed).
 Observation: dict of ``points`` (S, P, 3) float32 in the gripper-centric frame and ``jaw`` (1,);
 ``depth`` (84, 84) is added with ``depth_image=True``. Privileged state goes in ``info``.
+
+Surgical Grasp Any (``SurgicalGraspGymEnv``) acts in ``Discrete(9)`` (``proto.discrete_actions.NAMES``)
+and adds ``controller_state`` (1: the hybrid P-controller takes the next step, the action is ignored)
+and ``fsm_state`` to the observation; its points are in sim units (5 per real metre).
 """
 
 from __future__ import annotations
@@ -17,7 +22,10 @@ from gymnasium import spaces
 from services.tasks import EnvSettings, make_env
 from services.tasks.camera import CameraSettings
 
-IDS = {"block_pull": "mea/BlockPull-v0", "block_pick": "mea/BlockPick-v0", "drawer_open": "mea/DrawerOpen-v0"}
+IDS = {"block_pull": "mea/BlockPull-v0", "block_pick": "mea/BlockPick-v0", "drawer_open": "mea/DrawerOpen-v0",
+       "surgical_grasp_any": "mea/SurgicalGraspAny-v0"}  # fmt: skip
+ENTRY_POINTS = {"surgical_grasp_any": "services.tasks.gym_env:SurgicalGraspGymEnv"}
+"""Tasks whose gymnasium class is not ``MeaTaskEnv``."""
 
 
 class MeaTaskEnv(gym.Env):
@@ -66,10 +74,60 @@ class MeaTaskEnv(gym.Env):
         self.sim.close()
 
 
+class SurgicalGraspGymEnv(gym.Env):
+    """Surgical Grasp Any with its discrete action space (the paper's A_d)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, points_per_segment: int = 256, domain_randomisation: bool = False) -> None:
+        from proto.discrete_actions import NAMES
+        from services.tasks.surgical.settings import (
+            FSM_STATES,
+            RandomisationSettings,
+            SurgicalCameraSettings,
+            SurgicalSettings,
+        )
+
+        settings = SurgicalSettings(
+            camera=SurgicalCameraSettings(points_per_segment=points_per_segment),
+            randomisation=RandomisationSettings(enabled=domain_randomisation),
+        )
+        self.sim = make_env("surgical_grasp_any", settings)
+        S = len(self.sim.segment_names)
+        # TODO(h/sga-dsa): add the (3, 64, 64) uint8 DSA image once the env renders it
+        self.observation_space = spaces.Dict({
+            "points": spaces.Box(-1.0, 1.0, (S, points_per_segment, 3), np.float32),  # sim units, gripper-centric
+            "jaw": spaces.Box(0.0, 1.0, (1,), np.float32),
+            "controller_state": spaces.Discrete(2),
+            "fsm_state": spaces.Discrete(len(FSM_STATES)),
+        })  # fmt: skip
+        self.action_space = spaces.Discrete(len(NAMES))
+
+    @staticmethod
+    def _obs(o) -> dict[str, Any]:
+        return {"points": o.points, "jaw": np.array([o.jaw], np.float32),
+                "controller_state": int(o.controller_state), "fsm_state": int(o.fsm_state)}  # fmt: skip
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        episode_seed = int(seed) if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
+        o = self.sim.reset(episode_seed)
+        return self._obs(o), MeaTaskEnv._info(o)
+
+    def step(self, action):
+        o, reward, terminated, truncated, info = self.sim.step(self.sim.discrete_action(int(action)))
+        return self._obs(o), reward, terminated, truncated, {**MeaTaskEnv._info(o), **info}
+
+    def close(self) -> None:
+        self.sim.close()
+
+
 def register_envs() -> None:
     for task, env_id in IDS.items():
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point="services.tasks.gym_env:MeaTaskEnv", kwargs={"task": task})
+            entry = ENTRY_POINTS.get(task, "services.tasks.gym_env:MeaTaskEnv")
+            kwargs = {} if task in ENTRY_POINTS else {"task": task}
+            gym.register(id=env_id, entry_point=entry, kwargs=kwargs)
 
 
 register_envs()

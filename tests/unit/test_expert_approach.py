@@ -19,7 +19,7 @@ import pytest
 from proto.episode import Episode
 from services.actor.episodes import EpisodeBuilder
 from services.augmenter.core.mea import MeaSettings, phase_split
-from services.tasks import TASK_CLASSES, make_env
+from services.tasks import GENERAL_TASKS, make_env
 from services.tasks.experts import LZ, SAFE_Z
 
 pytestmark = pytest.mark.unit
@@ -49,7 +49,7 @@ def _record(env, seed: int, style: str) -> dict:
     return {"episode": builder.finish(f"test-{seed}-0"), "success": builder.success, "clipped": clipped}
 
 
-@pytest.fixture(scope="module", params=sorted(TASK_CLASSES))
+@pytest.fixture(scope="module", params=GENERAL_TASKS)
 def recorded(request) -> tuple[str, dict]:
     env = make_env(request.param)
     try:

@@ -33,5 +33,5 @@ def test_registered_env_follows_the_gymnasium_contract():
 
 
 def test_all_task_ids_are_registered():
-    for env_id in ("mea/BlockPull-v0", "mea/BlockPick-v0", "mea/DrawerOpen-v0"):
+    for env_id in ("mea/BlockPull-v0", "mea/BlockPick-v0", "mea/DrawerOpen-v0", "mea/SurgicalGraspAny-v0"):
         assert env_id in gym.registry

@@ -8,13 +8,13 @@ import pytest
 
 from proto.actions import DELTA_XYZ
 from services.observation.projection import ProjectionSpec, project
-from services.tasks import TASK_CLASSES, make_env
+from services.tasks import GENERAL_TASKS, make_env
 from services.tasks.prior import measure, summarise
 
 pytestmark = pytest.mark.unit
 
 
-@pytest.fixture(scope="module", params=sorted(TASK_CLASSES))
+@pytest.fixture(scope="module", params=GENERAL_TASKS)
 def env(request):
     e = make_env(request.param)
     yield e

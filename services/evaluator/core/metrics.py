@@ -85,10 +85,11 @@ class EpisodeResult:
 def episode_result(
     rewards: Sequence[float], terminated: Sequence[bool], seed: int | None = None
 ) -> EpisodeResult:
-    """An episode's result from its per-step rewards and terminal flags (success = the last step terminated)."""
+    """An episode's result from its per-step rewards and terminal flags (success = the last step terminated,
+    not with a negative reward: ``proto.episode.succeeded``)."""
     if len(rewards) != len(terminated):
         raise ValueError(f"{len(rewards)} rewards for {len(terminated)} terminal flags")
-    success = succeeded(terminated)
+    success = succeeded(terminated, rewards)
     return EpisodeResult(success, len(rewards), float(np.sum(np.asarray(rewards, np.float64))), seed)
 
 

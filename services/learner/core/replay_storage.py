@@ -323,7 +323,7 @@ class ReplayStorage:
         self._ep_rows[slot, : T + 1] = rows
         self._ep_rows[slot, T + 1 :] = self._zero_row
         self._ep_length[slot] = T
-        self._ep_success[slot] = succeeded(terminated)
+        self._ep_success[slot] = succeeded(terminated, rewards)
         self._order[self._n] = slot
         self._n += 1
         self._transitions += T

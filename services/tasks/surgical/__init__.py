@@ -1,0 +1,8 @@
+"""Surgical Grasp Any (the paper's second domain, after GASv2 on SurRoL), built on pybullet primitives.
+
+Modules: ``settings`` (scale, workspace, action scales, controller, rewards, camera, randomisation),
+``instrument`` (the PSM-like tool and its drive), ``objects`` (needle, block, rod), ``scene`` (tray,
+placement, constraints), ``camera`` (oblique depth + segmentation, back-projection, image noise),
+``control`` (voxel centroids, the latched P-controller, FSM rewards), ``oracle`` (the scripted
+discrete policy) and ``env`` (the env and the registry's task class).
+"""

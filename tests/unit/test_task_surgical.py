@@ -1,0 +1,280 @@
+"""Surgical Grasp Any: the gymnasium contract, determinism, the latched hybrid controller, the grasp
+rule (both jaws), refused actions, the step contract and the oracle."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from proto.discrete_actions import NAMES, TOGGLE, index_of
+from services.tasks import make_env
+from services.tasks.surgical import scene as scene_module
+from services.tasks.surgical.env import SurgicalGraspEnv
+from services.tasks.surgical.objects import grasp_yaw
+from services.tasks.surgical.oracle import Oracle
+from services.tasks.surgical.settings import (
+    ControllerSettings,
+    SurgicalCameraSettings,
+    SurgicalSettings,
+    real,
+)
+
+pytestmark = pytest.mark.unit
+
+FIELDS = ("points", "point_counts", "gripper_pose", "object_poses", "contacts", "jaw", "controller_state",
+          "fsm_state")  # fmt: skip
+SMALL = SurgicalCameraSettings(points_per_segment=64)
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = make_env("surgical_grasp_any", SurgicalSettings(camera=SMALL))
+    yield e
+    e.close()
+
+
+@pytest.fixture(scope="module")
+def free_env():
+    """The policy acts from the first step (no P-controller): for placing the tool by hand."""
+    e = SurgicalGraspEnv(SurgicalSettings(camera=SMALL, controller=ControllerSettings(enabled=False)))
+    yield e
+    e.close()
+
+
+def _rollout(env, seed: int, indices) -> list:
+    obs = [env.reset(seed)]
+    for i in indices:
+        obs.append(env.step(env.discrete_action(int(i)))[0])
+    return obs
+
+
+def _same(a, b) -> None:
+    for field in FIELDS:
+        assert np.array_equal(getattr(a, field), getattr(b, field)), field
+
+
+@pytest.mark.timeout(60)
+def test_registered_env_passes_the_gymnasium_checker():
+    import gymnasium as gym
+    from gymnasium.utils.env_checker import check_env
+
+    import services.tasks.gym_env  # noqa: F401 - registers the ids
+
+    env = gym.make("mea/SurgicalGraspAny-v0", points_per_segment=32)
+    try:
+        check_env(env.unwrapped, skip_render_check=True)
+        obs, _ = env.reset(seed=1)
+        assert env.observation_space.contains(obs) and obs["controller_state"] == 1
+        obs, reward, terminated, truncated, info = env.step(NAMES.index("+x"))
+        assert env.observation_space.contains(obs) and not terminated and not truncated
+        assert {"executed_action", "controller_acted", "fsm", "success", "gripper_pose"} <= set(info)
+    finally:
+        env.close()
+
+
+@pytest.mark.timeout(60)
+def test_same_seed_and_actions_give_identical_observations(env):
+    indices = np.random.default_rng(7).integers(0, len(NAMES), 12)
+    first = _rollout(env, 11, indices)
+    env.reset(3)  # a whole episode in between (grasp, lift) must leave no trace
+    oracle = Oracle(env)
+    while not any(env.step(oracle.act())[2:4]):
+        pass
+    again = _rollout(env, 11, indices)
+    fresh_env = make_env("surgical_grasp_any", SurgicalSettings(camera=SMALL))
+    try:
+        fresh = _rollout(fresh_env, 11, indices)
+    finally:
+        fresh_env.close()
+    for a, b, c in zip(first, again, fresh, strict=True):
+        _same(a, b)
+        _same(a, c)
+    other = _rollout(env, 12, indices[:1])
+    assert not np.array_equal(other[0].object_poses, first[0].object_poses)
+
+
+@pytest.mark.timeout(60)
+def test_the_p_controller_hands_over_inside_the_threshold_and_never_acts_again(env):
+    """A policy that always climbs (+z) is overridden while the error is outside the threshold on some
+    axis; the hand-over happens with every axis inside; afterwards its climb is executed although it
+    takes the error far outside again."""
+    from services.actor.rollout import run_episode
+
+    threshold = np.asarray(env.settings.controller.phase_threshold)
+    errors, states, infos = [], [], []
+    env.reset(5)
+    errors.append(env.centroid_error)
+    states.append(env.observe().controller_state)
+    for _ in range(30):
+        obs, _, terminated, truncated, info = env.step(env.discrete_action(NAMES.index("+z")))
+        errors.append(env.centroid_error)
+        states.append(obs.controller_state)
+        infos.append(info)
+        assert not (terminated or truncated)
+    handover = states.index(0)
+    assert handover >= 2, "the controller should act for a few steps from the start"
+    gain = np.asarray(env.settings.controller.gain)
+    for t in range(handover):  # acting: some axis outside, the controller's P action executed
+        outside = np.abs(errors[t]) > threshold
+        assert outside.any() and infos[t]["controller_acted"]
+        p_action = np.clip(-gain * errors[t] * outside, -1, 1)
+        assert np.allclose(infos[t]["executed_action"], [1.0, *p_action, 0.0], atol=1e-6)
+    assert (np.abs(errors[handover]) <= threshold).all()
+    assert all(s == 0 for s in states[handover:])
+    for info in infos[handover:]:  # latched: the policy's +z, every time
+        assert not info["controller_acted"] and index_of(info["executed_action"], True) == NAMES.index("+z")
+    assert (np.abs(errors[-1]) > threshold).any(), "the climb should leave the threshold again"
+    # an episode records what was executed: the controller's actions first, then the policy's
+    b = run_episode(env, 5, lambda _o: env.discrete_action(NAMES.index("+z")), _builder(env))
+    executed = np.array([info["executed_action"] for info in infos])
+    assert np.array_equal(np.stack(b.actions)[: len(executed)], executed)
+    assert executed[0][3] < 0  # the controller descended while the policy asked to climb
+
+
+def _builder(env, seed: int = 5):
+    from services.actor.episodes import EpisodeBuilder
+
+    return EpisodeBuilder(task="surgical_grasp_any", seed=seed, actor_id="t", policy_version=-1, policy_kind="random",
+                          is_demo=False, segments=env.segment_names)  # fmt: skip
+
+
+def _rod_seed(settings: SurgicalSettings) -> int:
+    """A seed whose object is a rod of scale <= 1 (3 mm thick or less)."""
+    for seed in range(200):
+        p = scene_module.draw(settings, np.random.default_rng(seed))
+        if p.spec.kind == "rod" and p.spec.scale <= 1.0:
+            return seed
+    raise AssertionError("no such seed")
+
+
+def _close_at(env, seed: int, offset_real: float):
+    """Reset, put the open jaws across the object's grasp axis with the tool ``offset_real`` (m) off
+    its grasp point along the closing axis, tips 0.5 mm above the tray, and close."""
+    env.reset(seed)
+    pose = env.scene.object_pose()
+    yaw = grasp_yaw(env.scene.object_yaw())
+    yaw = math.remainder(yaw, math.pi)  # within the yaw limit
+    u = np.array([math.cos(yaw), math.sin(yaw)])
+    tip = np.array([*(pose[:2] - real(offset_real) * u), real(0.0005)])
+    env.instrument.reset(env.instrument.pivot_from_tip(tip), yaw, jaw_open=True)
+    for _ in range(10):
+        env.step_physics()
+    assert not any(env.instrument.jaw_contacts(env.scene.object))
+    return env.step(env.discrete_action(TOGGLE))
+
+
+@pytest.mark.timeout(60)
+def test_success_needs_both_jaws_on_the_object(free_env):
+    env = free_env
+    seed = _rod_seed(env.settings)
+    # centred: both jaws touch, the object is grasped; lifting it succeeds
+    obs, reward, terminated, truncated, info = _close_at(env, seed, 0.0)
+    assert all(env.instrument.jaw_contacts(env.scene.object)) and info["grasped"] and not terminated
+    assert obs.fsm_state == 0 and obs.contacts[0]
+    rest = env.scene.object_pose()[2]
+    for _ in range(3):
+        obs, reward, terminated, truncated, info = env.step(env.discrete_action(NAMES.index("+z")))
+        if terminated:
+            break
+    assert terminated and not truncated and info["success"] and reward == 1.0
+    assert env.scene.object_pose()[2] - rest >= env.settings.lift_height
+    # 4.25 mm off-centre: the far jaw sweeps onto the object, the near one cannot reach it: a failure
+    obs, reward, terminated, truncated, info = _close_at(env, seed, -0.00425)
+    assert sum(env.instrument.jaw_contacts(env.scene.object)) == 1
+    assert terminated and not truncated and not info["success"] and reward == pytest.approx(-0.1)
+    assert info["fsm"] == "done_fail" and not info["grasped"]
+    # beside the object: no contact at all, a failure too
+    obs, reward, terminated, truncated, info = _close_at(env, seed, 0.02)
+    assert not any(env.instrument.jaw_contacts(env.scene.object))
+    assert terminated and info["fsm"] == "done_fail" and reward == pytest.approx(-0.1)
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_non_finite_action_is_refused_without_touching_the_env(env, bad):
+    ok = env.discrete_action(NAMES.index("+x"))
+    env.reset(11)
+    env.step(ok)
+    reference = env.step(ok)[0]
+    env.reset(11)
+    env.step(ok)
+    st = env.instrument.state
+    before = (env.t, st.pivot.copy(), st.yaw, st.jaw_open, env.controller.active, env.substeps)
+    action = ok.copy()
+    action[2] = bad
+    with pytest.raises(ValueError, match="finite"):
+        env.step(action)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(ok[:4])
+    st = env.instrument.state
+    after = (env.t, st.pivot, st.yaw, st.jaw_open, env.controller.active, env.substeps)
+    assert before[0] == after[0] and np.array_equal(before[1], after[1]) and before[2:] == after[2:]
+    _same(env.step(ok)[0], reference)
+
+
+@pytest.mark.timeout(60)
+def test_discrete_steps_move_by_the_discrete_scales_and_the_time_limit_truncates(free_env):
+    env = free_env
+    env.reset(2)
+    acts = env.settings.actions
+    tip, yaw = env.tip(), env.instrument.state.yaw
+    _, reward, *_ = env.step(env.discrete_action(NAMES.index("-x")))
+    assert np.allclose(env.tip() - tip, [-0.3 * real(0.01), 0, 0]) and reward == pytest.approx(-0.001)
+    env.step(env.discrete_action(NAMES.index("+yaw")))
+    assert env.instrument.state.yaw == pytest.approx(yaw + acts.unit_rotation)
+    assert abs(env.instrument.measured_pivot()[1] - env.instrument.state.yaw) < 3e-3
+    for t in range(2, env.settings.max_steps):  # alternate turns: nothing ends the episode early
+        _, reward, terminated, truncated, _ = env.step(
+            env.discrete_action(NAMES.index("-yaw" if t % 2 else "+yaw"))
+        )
+        assert not terminated and truncated == (t == env.settings.max_steps - 1)
+
+
+@pytest.mark.timeout(60)
+def test_the_oracle_grasps_on_a_seeded_sample(env):
+    successes = 0
+    for seed in range(100, 120):
+        env.reset(seed)
+        oracle = env.task.expert(env, "direct", np.random.default_rng(seed))
+        for _ in range(env.settings.max_steps):
+            _, _, terminated, truncated, info = env.step(oracle.act())
+            if terminated or truncated:
+                break
+        successes += bool(info["success"])
+    assert successes >= 18
+
+
+@pytest.mark.timeout(60)
+def test_a_failed_grasp_terminates_and_is_no_success(env):
+    """Closing as soon as the policy has control (the jaws 2 cm real above the object) fails the
+    grasp: terminated (not truncated) with -0.1, and the episode does not count as a success."""
+    from services.actor.rollout import run_episode
+
+    b = run_episode(env, 8, lambda _o: env.discrete_action(TOGGLE), _builder(env, 8))
+    assert b.terminated[-1] and not any(b.truncated) and b.rewards[-1] == pytest.approx(-0.1)
+    assert not b.success and len(b.actions) < env.settings.max_steps
+    assert b.obs[-1].fsm_state == 4  # done_fail
+
+
+@pytest.mark.timeout(60)
+def test_domain_randomisation_is_drawn_from_the_seed(env):
+    from services.tasks.surgical.settings import RandomisationSettings
+
+    dr = SurgicalGraspEnv(SurgicalSettings(camera=SMALL, randomisation=RandomisationSettings(enabled=True)))
+    try:
+        indices = [NAMES.index("+x")] * 8
+        first = _rollout(dr, 4, indices)
+        pose = dr.camera_pose
+        again = _rollout(dr, 4, indices)
+        for a, b in zip(first, again, strict=True):
+            _same(a, b)
+        assert dr.camera_pose == pose and pose.distance != 0.0
+        assert _rollout(dr, 5, [])[0].point_counts.tolist() != first[0].point_counts.tolist()
+        plain = _rollout(env, 4, indices)
+        assert not np.array_equal(plain[0].points, first[0].points)  # camera and image noise
+        np.testing.assert_array_equal(plain[0].object_poses, first[0].object_poses)  # same scene
+        assert not np.array_equal(plain[-1].gripper_pose, first[-1].gripper_pose)  # action noise
+    finally:
+        dr.close()
