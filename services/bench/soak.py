@@ -7,7 +7,9 @@ the launcher) is read from /proc. The table gives, per service instance, RSS at 
 warm-up and at the end, and the growth between them. The learner's replay arrays are reserved at
 start and their pages touched as they fill, so its growth is also given net of the replay bytes it
 filled in between (from its heartbeats): data kept by design, not a leak. A service that restarts
-starts a new series (its restarts are listed). Growth after warm-up must stay under 5%.
+starts a new series (its restarts are listed). Sampling stops 5 s before the stack is told to stop:
+the learner's final checkpoint copies its replay (a transient, not growth). Growth after warm-up
+must stay under 5%.
 """
 
 from __future__ import annotations
@@ -122,7 +124,7 @@ def run(cfg: SoakBenchConfig) -> dict:
                 if hb.service == "learner":
                     replay_filled[hb.pid] = float(hb.counters.get("replay_bytes_filled", 0.0))
             now = time.monotonic() - t0
-            if now >= next_sample:
+            if now >= next_sample and now < cfg.minutes * 60 - 5:  # not the shutdown (final checkpoint)
                 for pid, s in series.items():
                     rss = rss_bytes(pid)
                     if rss is not None:

@@ -23,6 +23,8 @@ from services.common.metrics import DEFAULT_PORTS, ServiceMetrics
 
 log = logging.getLogger(__name__)
 PR_SET_PDEATHSIG = 1
+TRIM_SECONDS = 60.0
+"""How often a service gives freed heap pages back to the OS (``trim_heap``)."""
 
 
 _scope = threading.local()
@@ -79,6 +81,23 @@ class Shutdown:
 
     def wait(self, timeout: float | None = None) -> bool:
         return self._event.wait(timeout)
+
+
+_libc = None
+
+
+def trim_heap() -> None:
+    """Give the C heap's free pages back to the OS (glibc ``malloc_trim``; a no-op elsewhere).
+
+    Long-running services allocate and free many episode-sized arrays; after a burst glibc keeps the
+    freed arenas, which shows as RSS that steps up and never comes down (the soak benchmark saw
+    +150 MB in the learner). Trimming now and then keeps RSS at what is in use."""
+    global _libc
+    try:
+        _libc = _libc or ctypes.CDLL("libc.so.6")
+        _libc.malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def die_with_parent() -> None:
@@ -182,7 +201,11 @@ class ServiceContext:
         )
 
     def _heartbeats(self) -> None:
+        trimmed = time.monotonic()
         while not self.shutdown.wait(self.cfg.heartbeat_seconds):
+            if time.monotonic() - trimmed > TRIM_SECONDS:
+                trim_heap()
+                trimmed = time.monotonic()
             try:
                 self.metrics.policy_version.set(self.policy_version)
                 self.bus.publish(STATUS, self.heartbeat(), service=self.service, instance=self.instance)

@@ -134,3 +134,24 @@ def test_shutdowns_made_under_stopped_by_follow_the_parent_and_only_downwards():
     with stopped_by(parent):  # one made after the parent stopped starts stopped
         late = Shutdown(install_signals=False)
     assert late.is_set() and late.reason == "budget"
+
+
+def test_trim_heap_gives_freed_pages_back():
+    """After freeing many small arrays (kept by glibc's arenas), a trim lowers RSS."""
+    import os
+
+    import numpy as np
+
+    from services.bench.soak import rss_bytes
+    from services.common.runtime import trim_heap
+
+    trim_heap()
+    base = rss_bytes(os.getpid())
+    blocks = [np.ones(20_000, np.uint8) for _ in range(20_000)]  # 400 MB in sub-threshold chunks
+    blocks = blocks[-1:]  # free all but the last: the arenas stay mapped
+    before = rss_bytes(os.getpid())
+    trim_heap()
+    after = rss_bytes(os.getpid())
+    assert before - base > 200_000_000, (base, before)
+    assert before - after > 200_000_000, (before, after)
+    del blocks
