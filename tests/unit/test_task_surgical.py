@@ -278,3 +278,63 @@ def test_domain_randomisation_is_drawn_from_the_seed(env):
         assert not np.array_equal(plain[-1].gripper_pose, first[-1].gripper_pose)  # action noise
     finally:
         dr.close()
+
+
+class _Recording:
+    """The env as ``run_episode`` drives it, keeping every step's info."""
+
+    def __init__(self, env) -> None:
+        self.env, self.infos = env, []
+
+    def __getattr__(self, name):
+        return getattr(self.env, name)
+
+    def step(self, action):
+        out = self.env.step(action)
+        self.infos.append(out[4])
+        return out
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("randomised", [False, True])
+def test_every_recorded_step_moves_the_pivot_by_one_scale(env, randomised):
+    """The transition prior MEA rests on, on recorded episodes (oracle and random policy, controller
+    and policy steps alike): pivot_{t+1} - pivot_t = delta_xyz * a_t[dx, dy, dz], where delta_xyz
+    is MEA's, unless the env reported the step as clipped or blocked."""
+    from services.actor.rollout import run_episode
+    from services.augmenter.core.mea_discrete import MeaDiscreteSettings
+    from services.tasks.surgical.settings import RandomisationSettings
+
+    acts = env.settings.actions
+    delta = MeaDiscreteSettings().delta_xyz
+    assert acts.step_translation == pytest.approx(delta, abs=1e-12)
+    settings = SurgicalSettings(camera=SMALL, randomisation=RandomisationSettings(enabled=randomised))
+    e = SurgicalGraspEnv(settings) if randomised else env
+    # the drive settles within 0.2 mm sim (measured); randomisation adds its action noise per axis
+    tol = 5e-4 + (
+        math.sqrt(3) * settings.randomisation.action_noise * acts.unit_translation if randomised else 0
+    )
+    checked = {True: 0, False: 0}
+    try:
+        for seed in (21, 22, 23):
+            rec = _Recording(e)
+            oracle = {}
+
+            def act(_obs, rec=rec, oracle=oracle, seed=seed):
+                if seed == 23:  # a random policy
+                    return e.sample_action(np.random.default_rng([seed, e.t]))
+                oracle.setdefault("o", Oracle(e))
+                return oracle["o"].act()
+
+            ep = run_episode(rec, seed, act, _builder(e, seed)).finish(f"prior-{seed}")
+            moved = np.diff(ep.gripper_pose[:, :3].astype(np.float64), axis=0)
+            err = np.linalg.norm(moved - delta * ep.actions[:, 1:4].astype(np.float64), axis=1)
+            for t, info in enumerate(rec.infos):
+                if info["clipped"] or info["blocked"]:
+                    continue
+                assert err[t] <= tol, (seed, t, info["controller_acted"], err[t])
+                checked[bool(info["controller_acted"])] += 1
+    finally:
+        if randomised:
+            e.close()
+    assert checked[True] >= 10 and checked[False] >= 10, checked

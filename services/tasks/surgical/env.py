@@ -9,9 +9,16 @@ Action: the 5-vector (jaw, dx, dy, dz, dtheta) in [-1, 1]. The policy's nine dis
 as such vectors (``proto.discrete_actions``); any finite vector is accepted and clipped. Who acts:
 
 - while ``controller_state`` is 1 the P-controller (``control.HybridController``) acts and the
-  given action is ignored; its continuous action moves ``a * unit_translation`` (1 cm real per unit);
-- afterwards the given action acts, scaled by the discrete scales: ``a * 0.3 * unit_translation``
-  and ``a * 1.0 * 45 degrees``.
+  given action is ignored (its continuous action, each axis in [-1, 1], jaw open);
+- afterwards the given action acts.
+
+Either way one scale applies (``ActionSettings.step_translation``, ``step_rotation``): a unit of
+dx, dy or dz moves the tips ``0.3 * unit_translation`` (0.015 sim, 3 mm real) and a unit of dtheta
+turns 45 degrees. So every recorded step satisfies the transition prior MEA rests on,
+``pivot_{t+1} - pivot_t = 0.015 * a_t[dx, dy, dz]`` (within the drive's settling, measured under
+0.2 mm sim; domain randomisation adds its action noise), except where ``info['clipped']`` (a
+workspace or yaw limit clipped the command) or ``info['blocked']`` (the tool did not reach the
+commanded pivot, ``blocked_tolerance``) says otherwise.
 
 ``info['executed_action']`` is the action that produced the next observation (the controller's or
 the policy's), which is what an episode must record. The jaw component is the jaw command after
@@ -179,19 +186,17 @@ class SurgicalGraspEnv:
         a = self._validate(action)
         s, acts = self.settings, self.settings.actions
         by_controller = self.controller.active
-        if by_controller:
-            executed, t_scale, r_scale = self.controller.action(self._err), 1.0, 1.0
-        else:
-            executed = np.clip(a, -1.0, 1.0)
-            t_scale, r_scale = acts.discrete_position_scale, acts.discrete_rotation_scale
-        delta = executed[1:4] * t_scale * acts.unit_translation
-        turn = float(executed[4]) * r_scale * acts.unit_rotation
+        executed = self.controller.action(self._err) if by_controller else np.clip(a, -1.0, 1.0)
+        delta = executed[1:4] * acts.step_translation  # one scale for the controller and the policy
+        turn = float(executed[4]) * acts.step_rotation
         if s.randomisation.enabled and s.randomisation.action_noise > 0:
             u = self._rng(9).uniform(-1.0, 1.0, 4) * s.randomisation.action_noise
             delta, turn = delta + u[:3] * acts.unit_translation, turn + float(u[3]) * acts.unit_rotation
         was_open = self.jaw_open
         clipped = self._command(delta, turn, bool(executed[0] >= 0))
         self.instrument.settle(self.step_physics, RAMP_STEPS, s.min_substeps, s.max_substeps, s.tolerance)
+        reached, _ = self.instrument.measured_pivot()
+        blocked = bool(np.linalg.norm(reached - self.instrument.state.pivot) > s.blocked_tolerance)
         self._grasp_logic(was_open)
         self.t += 1
         world = self._perceive()
@@ -202,7 +207,8 @@ class SurgicalGraspEnv:
         obs = self._observation(world)
         success = self.fsm == "done_success"
         info = {"success": success, "fsm": self.fsm, "executed_action": executed.astype(np.float32),
-                "controller_acted": by_controller, "clipped": clipped, "grasped": self.grasped}  # fmt: skip
+                "controller_acted": by_controller, "clipped": clipped, "blocked": blocked,
+                "grasped": self.grasped}  # fmt: skip
         return obs, fsm_reward(self.fsm, s.rewards), terminated, truncated, info
 
     def _command(self, delta: np.ndarray, turn: float, jaw_open: bool) -> bool:
