@@ -86,12 +86,14 @@ __all__ = [
     "FSM_STATES",
     "GRIPPER_STATES",
     "STATE_ROW",
+    "SURGICAL_GRASP_ANY",
     "DsaSpec",
     "camera_pose_noise",
     "decode_state_rows",
     "dsa_image",
     "dsa_image_from_voxels",
     "image_noise",
+    "in_cube",
     "state_blocks",
     "to_occupancy",
     "voxel_centroid",
@@ -171,6 +173,16 @@ class DsaSpec:
         return math.floor(self.zoom * self.grid + 0.5)
 
 
+SURGICAL_GRASP_ANY = DsaSpec(origin=(0.0, 0.0, 0.035 * 5.0))
+"""The DSA spec of Surgical Grasp Any, the one place it is defined: the env's P-controller and policy
+image (``services.tasks.surgical``) and the augmenter's re-projection of MEA copies
+(``services.augmenter.core.pipeline.discrete_reprojector``) all use it. Its cube is 1 sim unit
+(20 cm real; the simulator is 5x real) on a side, world-aligned, centred on the workspace centre
+(0, 0, 0.035 x 5) = (0, 0, 0.175): the reference's 200^3 ``Occup`` grid. Its low corner
+(-0.5, -0.5, -0.325) lies on the 0.005 lattice the env downsamples clouds on, so a downsampled
+point is one occupied voxel."""
+
+
 # ------------------------------------------------------------------------------------------------
 # Occupancy
 # ------------------------------------------------------------------------------------------------
@@ -195,6 +207,13 @@ def to_occupancy(
             raise ValueError(f"cam_rotation must be a finite 3x3 matrix, got shape {rot.shape}")
         q = q @ rot.T
     return q
+
+
+def in_cube(points_world: np.ndarray, spec: DsaSpec, cam_rotation: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: which sim-world points ``voxelize`` keeps (inside the cube, finite), by the same
+    arithmetic, so a cloud cropped with it voxelises to the same set."""
+    c = (to_occupancy(points_world, spec, cam_rotation) + 0.5) * spec.grid
+    return np.logical_and(c >= 0, c < spec.grid).all(axis=1)
 
 
 def voxelize(points_occ: np.ndarray, spec: DsaSpec) -> np.ndarray:

@@ -3,6 +3,7 @@ rule (both jaws), refused actions, the step contract and the oracle."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -338,3 +339,28 @@ def test_every_recorded_step_moves_the_pivot_by_one_scale(env, randomised):
         if randomised:
             e.close()
     assert checked[True] >= 10 and checked[False] >= 10, checked
+
+
+@pytest.mark.timeout(60)
+def test_the_controller_and_the_image_share_the_task_dsa_grid(env):
+    """One voxelisation: the env's spec is the observation module's, a 200^3 world-aligned grid over
+    a 1-sim-unit cube centred on the workspace centre; each downsampled point is one voxel of it, and
+    the P-controller's error is the difference of its ``voxel_centroid``s plus the offset."""
+    from services.observation import dsa
+    from services.tasks.surgical.scene import WORKSPACE
+
+    spec = env.settings.dsa
+    assert spec == dsa.SURGICAL_GRASP_ANY
+    assert (spec.grid, spec.scale, spec.origin) == (200, 1.0, (0.0, 0.0, real(0.035)))
+    assert np.allclose(WORKSPACE.mean(axis=1), spec.origin)
+    env.reset(3)
+    world = env._perceive()
+    for name, pts in world.items():
+        assert len(pts) > 0 and dsa.in_cube(pts, spec).all(), name
+        assert len(dsa.voxelize(dsa.to_occupancy(pts, spec), spec)) == len(pts), name
+    offset = np.asarray(env.settings.controller.error_offset)
+    want = dsa.voxel_centroid(world["gripper"], spec) - dsa.voxel_centroid(world["object_0"], spec) + offset
+    assert np.array_equal(env.centroid_error, want)
+    shifted = dataclasses.replace(spec, origin=(0.0, 0.0, 0.0))
+    assert not np.array_equal(dsa.voxelize(dsa.to_occupancy(world["gripper"], shifted), shifted),
+                              dsa.voxelize(dsa.to_occupancy(world["gripper"], spec), spec))  # fmt: skip

@@ -44,16 +44,11 @@ import pybullet as pb
 
 from proto.actions import ACTION_DIM
 from proto.discrete_actions import NAMES, to_vector
+from services.observation.dsa import in_cube, voxel_centroid
 from services.tasks.camera import _downsample, sample_fixed
 from services.tasks.env import EnvSettings, Observation
 from services.tasks.surgical.camera import CameraPose, ObliqueCamera, image_noise
-from services.tasks.surgical.control import (
-    HybridController,
-    centroid_error,
-    fsm_index,
-    fsm_reward,
-    voxel_centroid,
-)
+from services.tasks.surgical.control import HybridController, centroid_error, fsm_index, fsm_reward
 from services.tasks.surgical.scene import WORKSPACE, Scene, draw
 from services.tasks.surgical.settings import SurgicalCameraSettings, SurgicalSettings
 
@@ -254,15 +249,13 @@ class SurgicalGraspEnv:
         masks = {"gripper": seg == self.instrument.body, "object_0": seg == self.scene.object}
         if s.randomisation.enabled:
             z, masks = image_noise(z, masks, s.randomisation, s.camera.distance, self._rng(8))
-        occ = s.occupancy
-        low, high = np.asarray(occ.centre) - occ.extent / 2, np.asarray(occ.centre) + occ.extent / 2
         world = {}
         for name, mask in masks.items():
             pts = self.camera.unproject(mask, z)
-            pts = pts[((pts >= low) & (pts < high)).all(axis=1)]  # the occupancy grid's cube
+            pts = pts[in_cube(pts, s.dsa)]  # the occupancy grid's cube
             world[name] = _downsample(pts, s.camera.downsample_voxel)
         self._err = centroid_error(
-            voxel_centroid(world["gripper"], occ), voxel_centroid(world["object_0"], occ), s.controller
+            voxel_centroid(world["gripper"], s.dsa), voxel_centroid(world["object_0"], s.dsa), s.controller
         )
         return world
 

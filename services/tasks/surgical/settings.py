@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from services.observation.dsa import SURGICAL_GRASP_ANY, DsaSpec
+
 SCALING = 5.0
 """Sim units per real metre (SurRoL's world scaling)."""
 
@@ -116,18 +118,8 @@ class SurgicalCameraSettings:
     points_per_segment: int = 256
     """Points drawn per segment (services.tasks.camera.sample_fixed)."""
     downsample_voxel: float = 1.0 / 200.0
-    """One point per occupied voxel of this edge (the occupancy grid's voxel) before the draw."""
-
-
-@dataclass(frozen=True)
-class OccupancySettings:
-    """The occupancy grid the P-controller measures centroids in (reference ``Occup``: 200^3 voxels
-    over a unit cube). Axes are the world's; the grid is centred on the workspace centre."""
-
-    centre: tuple[float, float, float] = (0.0, 0.0, real(0.035))
-    extent: float = 1.0
-    """Edge of the cube (sim units): 20 cm real."""
-    voxels: int = 200
+    """One point per occupied voxel of this edge before the draw: the DSA grid's voxel (its lattice
+    contains the grid's corner, so each point is one occupied DSA voxel)."""
 
 
 @dataclass(frozen=True)
@@ -192,7 +184,11 @@ class SurgicalSettings:
     controller: ControllerSettings = field(default_factory=ControllerSettings)
     rewards: RewardSettings = field(default_factory=RewardSettings)
     camera: SurgicalCameraSettings = field(default_factory=SurgicalCameraSettings)
-    occupancy: OccupancySettings = field(default_factory=OccupancySettings)
+    dsa: DsaSpec = SURGICAL_GRASP_ANY
+    """The occupancy grid (200^3 voxels over a 1-sim-unit cube, world-aligned, centred on the
+    workspace centre) and the policy image the P-controller's centroids and the observation's
+    ``image`` come from; the augmenter re-projects MEA copies with the same spec
+    (``services.observation.dsa.SURGICAL_GRASP_ANY``)."""
     randomisation: RandomisationSettings = field(default_factory=RandomisationSettings)
 
     def __post_init__(self) -> None:
