@@ -98,6 +98,7 @@ __all__ = [
     "to_occupancy",
     "voxel_centroid",
     "voxelize",
+    "world_clouds",
 ]
 
 GRIPPER_STATES = ("open", "closed")
@@ -269,6 +270,26 @@ def dsa_image(
     return dsa_image_from_voxels(
         g, o, spec, gripper_state=gripper_state, fsm_state=fsm_state, controller_state=controller_state
     )
+
+
+def world_clouds(points: np.ndarray, point_counts: np.ndarray, pivot: np.ndarray) -> list[np.ndarray]:
+    """The observed points of each segment of one episode row, back in the sim world (float64).
+
+    ``points`` (S, P, 3) are gripper-centric, ``point_counts`` (S,) the distinct points each segment
+    had and ``pivot`` the row's ``gripper_pose[:3]``: rows ``[:min(count, P)]`` are distinct observed
+    points (the rest repeat them, ``services.tasks.camera.sample_fixed``), returned as
+    ``float64(points) + float64(pivot)``. The surgical env renders its policy image from exactly these
+    (the float32 values it stores), so re-rendering a stored row reproduces its image bit for bit.
+    """
+    pts = np.asarray(points)
+    counts = np.asarray(point_counts)
+    if pts.ndim != 3 or pts.shape[2] != 3 or counts.shape != pts.shape[:1]:
+        raise ValueError(
+            f"points (S, P, 3) and point_counts (S,) expected, got {pts.shape} and {counts.shape}"
+        )
+    origin = np.asarray(pivot, dtype=np.float64).reshape(3)
+    P = pts.shape[1]
+    return [pts[i, : min(int(c), P)].astype(np.float64) + origin for i, c in enumerate(counts)]
 
 
 def dsa_image_from_voxels(

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from proto.discrete_actions import NAMES, TOGGLE, index_of
+from services.observation.dsa import decode_state_rows, dsa_image, world_clouds
 from services.tasks import make_env
 from services.tasks.surgical import scene as scene_module
 from services.tasks.surgical.env import SurgicalGraspEnv
@@ -25,7 +26,7 @@ from services.tasks.surgical.settings import (
 pytestmark = pytest.mark.unit
 
 FIELDS = ("points", "point_counts", "gripper_pose", "object_poses", "contacts", "jaw", "controller_state",
-          "fsm_state")  # fmt: skip
+          "fsm_state", "image")  # fmt: skip
 SMALL = SurgicalCameraSettings(points_per_segment=64)
 
 
@@ -68,6 +69,8 @@ def test_registered_env_passes_the_gymnasium_checker():
         check_env(env.unwrapped, skip_render_check=True)
         obs, _ = env.reset(seed=1)
         assert env.observation_space.contains(obs) and obs["controller_state"] == 1
+        assert obs["image"].shape == (3, 64, 64) and obs["image"].dtype == np.uint8
+        assert decode_state_rows(obs["image"]) == (0, obs["fsm_state"], 1)
         obs, reward, terminated, truncated, info = env.step(NAMES.index("+x"))
         assert env.observation_space.contains(obs) and not terminated and not truncated
         assert {"executed_action", "controller_acted", "fsm", "success", "gripper_pose"} <= set(info)
@@ -364,3 +367,29 @@ def test_the_controller_and_the_image_share_the_task_dsa_grid(env):
     shifted = dataclasses.replace(spec, origin=(0.0, 0.0, 0.0))
     assert not np.array_equal(dsa.voxelize(dsa.to_occupancy(world["gripper"], shifted), shifted),
                               dsa.voxelize(dsa.to_occupancy(world["gripper"], spec), spec))  # fmt: skip
+
+
+@pytest.mark.timeout(60)
+def test_the_policy_image_is_rendered_from_the_stored_points_and_recorded(env):
+    """Every observation's image is ``dsa_image`` of exactly the points the episode stores (observed
+    rows plus the stored pivot) with the state row of the step; an episode records it in
+    ``images`` and the wire keeps it."""
+    from proto.episode import Episode
+    from services.actor.rollout import run_episode
+
+    b = run_episode(env, 6, lambda _o: Oracle(env).act(), _builder(env, 6))
+    assert b.success
+    ep = Episode.decode(b.finish("image-6").encode())
+    assert ep.images.dtype == np.uint8 and ep.images.shape == (ep.num_steps + 1, 3, 64, 64)
+    closed = np.r_[False, ep.actions[:, 0] < 0]  # the jaw command after each step (row t: after step t-1)
+    states = []
+    for t, obs in enumerate(b.obs):
+        gripper, obj = world_clouds(ep.points[t], ep.point_counts[t], ep.gripper_pose[t, :3])
+        want = dsa_image(gripper, obj, env.settings.dsa, gripper_state=int(closed[t]), fsm_state=obs.fsm_state,
+                         controller_state=obs.controller_state)  # fmt: skip
+        assert np.array_equal(ep.images[t], want), t
+        states.append(decode_state_rows(ep.images[t]))
+        assert (ep.images[t, 0] > 0).any(), t  # the gripper is always in view
+    assert [s[2] for s in states] == [o.controller_state for o in b.obs]
+    assert states[0][2] == 1 and states[-1] == (1, 5, 0)  # at the end: closed, done_success, policy
+    assert any(s[0] == 0 for s in states) and (ep.images[:, 1] > 0).any()  # open jaws; the object seen

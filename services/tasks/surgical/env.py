@@ -35,6 +35,19 @@ so does opening the jaw on a grasped object (it drops). Rewards: +1 success, -0.
 abnormal step (a workspace or yaw limit clipped the command, or the gripper centroid dived below
 ``fsm_z_err_min``), -0.001 otherwise. ``terminated`` marks success and failure (both end the task);
 ``truncated`` only the 80-step limit.
+
+Observation: the camera's masked depth pixels (with the image noise of domain randomisation) are
+back-projected, cropped to the DSA cube and downsampled to one point per voxel (``world``: what the
+P-controller's voxel centroids see); each segment's cloud is then drawn to ``points_per_segment``
+gripper-centric points (``point_counts``: how many distinct points it had). ``image`` is the policy
+image, ``services.observation.dsa.dsa_image`` (3 x 64 x 64 uint8; state row: gripper_state 1 when
+the jaw is commanded closed, fsm_state, controller_state) of exactly the stored points
+(``dsa.world_clouds``: the observed rows plus the stored pivot), so that MEA copies, re-rendered
+from their moved points by the same two functions, share the raw images' distribution and a copy
+that is not moved reproduces them bit for bit. The cost: where a cloud had more distinct points than
+``points_per_segment`` (the gripper: about 400 to 550 voxels against 256 points) the image shows the
+drawn subset. No ``cam_rotation``: the camera pose noise of domain randomisation already moved the
+rendering camera, so the points carry it.
 """
 
 from __future__ import annotations
@@ -44,7 +57,7 @@ import pybullet as pb
 
 from proto.actions import ACTION_DIM
 from proto.discrete_actions import NAMES, to_vector
-from services.observation.dsa import in_cube, voxel_centroid
+from services.observation.dsa import dsa_image, in_cube, voxel_centroid, world_clouds
 from services.tasks.camera import _downsample, sample_fixed
 from services.tasks.env import EnvSettings, Observation
 from services.tasks.surgical.camera import CameraPose, ObliqueCamera, image_noise
@@ -269,19 +282,21 @@ class SurgicalGraspEnv:
         for i, name in enumerate(self.segment_names):
             pts = world[name]
             points[i], counts[i] = sample_fixed(pts - pivot if len(pts) else pts, P, rng)
-        # TODO(h/sga-dsa): image = services.observation.dsa.dsa_image(world["gripper"], world["object_0"],
-        #     spec, gripper_state=int(self.jaw_open), fsm_state=fsm_index(self.fsm),
-        #     controller_state=int(self.controller.active), cam_rotation=<the DR camera rotation>)
+        pose = np.array([*pivot, yaw], np.float32)
+        controller_state, fsm_state = int(self.controller.active), fsm_index(self.fsm)
+        gripper, obj = world_clouds(points, counts, pose[:3])
+        image = dsa_image(gripper, obj, s.dsa, gripper_state=int(not self.jaw_open), fsm_state=fsm_state,
+                          controller_state=controller_state)  # fmt: skip
         return Observation(
             points=points,
             point_counts=counts,
             jaw=self.instrument.jaw_opening(),
-            gripper_pose=np.array([*pivot, yaw], np.float32),
+            gripper_pose=pose,
             object_poses=self.scene.object_pose()[None].astype(np.float32),
             contacts=np.array([self.instrument.touches(self.scene.object)]),
-            image=None,
-            controller_state=int(self.controller.active),
-            fsm_state=fsm_index(self.fsm),
+            image=image,
+            controller_state=controller_state,
+            fsm_state=fsm_state,
         )
 
     def observe(self) -> Observation:
