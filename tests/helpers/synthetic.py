@@ -75,14 +75,17 @@ def synthetic_episode(seed: int, T: int = 20, xy: np.ndarray | None = None) -> t
 
 SURGICAL_STEP = 0.015
 """Sim metres per unit action of the synthetic surgical episodes (``MeaDiscreteSettings.delta_xyz``)."""
+SURGICAL_PIVOT_HEIGHT = 0.143
+"""The pivot's height above the closed jaw tips (the env calibrates 0.1430)."""
 
 
 def synthetic_surgical_episode(seed: int, P: int = 24, *, images: bool = True) -> Episode:
     """Surgical Grasp Any as its env records it, obeying the transition prior exactly: the hybrid
     P-controller's continuous approach (dx, dy, dz in [-1, 1], jaw open), a few discrete policy
     steps (``proto.discrete_actions``: +-x, +-y, +-z, +-yaw toward the object), then the jaw toggle
-    that ends it successfully. One object fixed in the world; the pivot starts at x = -0.225 (the
-    reference's x ratio -0.9) inside the [-0.25, 0.25]^2 x [0, 0.35] workspace."""
+    that ends it successfully. One object fixed in the world; the pivot (``SURGICAL_PIVOT_HEIGHT``
+    above the tips, as in the env) starts at x = -0.225 (the reference's x ratio -0.9) inside the
+    env's pivot workspace [-0.25, 0.25]^2 x [0.143, 0.493]."""
     from proto.discrete_actions import NAMES, TOGGLE, to_vector
 
     rng = np.random.default_rng(seed)
@@ -90,8 +93,8 @@ def synthetic_surgical_episode(seed: int, P: int = 24, *, images: bool = True) -
     obj_cloud = obj + rng.normal(0.0, 0.01, (P, 3))
     grip_local = rng.normal(0.0, 0.01, (P, 3))
     grip_local -= grip_local.mean(0)
-    pos0 = np.array([-0.225, rng.uniform(-0.2, 0.2), rng.uniform(0.2, 0.3)])
-    target, pos, actions = obj + np.array([0.0, 0.0, 0.08]), pos0.copy(), []
+    pos0 = np.array([-0.225, rng.uniform(-0.2, 0.2), rng.uniform(0.2, 0.3) + SURGICAL_PIVOT_HEIGHT])
+    target, pos, actions = obj + np.array([0.0, 0.0, 0.08 + SURGICAL_PIVOT_HEIGHT]), pos0.copy(), []
     while np.any(np.abs(target - pos) > 0.03) and len(actions) < 60:  # the P-controller (Kp 10)
         a = np.zeros(5)
         a[0], a[1:4] = 1.0, np.clip(10.0 * (target - pos), -1.0, 1.0)

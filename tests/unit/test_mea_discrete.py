@@ -54,7 +54,7 @@ def _kind(a: np.ndarray) -> tuple[str, int | None]:
 
 def test_settings_defaults_and_validation():
     assert (S.h_p, S.copies, S.p_rotate, S.delta_xyz) == (5, 200, 0.3, 0.015) and S.delta_xyz == SURGICAL_STEP
-    assert np.allclose(np.subtract(S.pivot_high, S.pivot_low), [0.5, 0.5, 0.35]) and S.pivot_low[2] == 0.0
+    assert np.allclose(np.subtract(S.pivot_high, S.pivot_low), [0.5, 0.5, 0.35]) and S.pivot_low[2] == 0.143
     for bad in ({"h_p": -1}, {"p_rotate": 1.5}, {"delta_xyz": 0.0}, {"pivot_low": (0.3, -0.25, 0.0)}):
         with pytest.raises(ValueError):
             MeaDiscreteSettings(**bad)

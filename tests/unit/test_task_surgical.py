@@ -393,3 +393,15 @@ def test_the_policy_image_is_rendered_from_the_stored_points_and_recorded(env):
     assert [s[2] for s in states] == [o.controller_state for o in b.obs]
     assert states[0][2] == 1 and states[-1] == (1, 5, 0)  # at the end: closed, done_success, policy
     assert any(s[0] == 0 for s in states) and (ep.images[:, 1] > 0).any()  # open jaws; the object seen
+
+
+def test_meas_workspace_is_the_envs_pivot_workspace(env):
+    """MEA refuses copies whose pivot leaves ``MeaDiscreteSettings``' bounds: they must be the env's
+    (the tips' workspace raised by the calibrated pivot height), or copies would be refused for
+    places the env reaches, or claim places it clips."""
+    from services.augmenter.core.mea_discrete import MeaDiscreteSettings
+
+    low, high = env.pivot_bounds()
+    s = MeaDiscreteSettings()
+    assert np.allclose(s.pivot_low, low, atol=1e-4) and np.allclose(s.pivot_high, high, atol=1e-4)
+    assert s.bound_tolerance <= 5 * env.settings.tolerance

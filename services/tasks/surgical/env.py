@@ -312,6 +312,12 @@ class SurgicalGraspEnv:
         """A uniformly random discrete action as its 5-vector (the random policy's)."""
         return self.discrete_action(int(rng.integers(len(NAMES))))
 
+    def pivot_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) (3,) of the commanded pivot: the tips' workspace raised by the pivot height
+        (what MEA's ``MeaDiscreteSettings.pivot_low`` / ``pivot_high`` must equal)."""
+        lift = np.array([0.0, 0.0, self.pivot_height])
+        return WORKSPACE[:, 0] + lift, WORKSPACE[:, 1] + lift
+
     def tip(self) -> np.ndarray:
         """Commanded closed-jaw tip position (privileged)."""
         return self.instrument.tip_from_pivot(self.instrument.state.pivot)
