@@ -31,7 +31,8 @@ Read beside the paper and the authors' GASv2 code (``tasks-and-baselines.md`` se
   copy's gripper is elsewhere (the non-trivial phase is the one without interaction).
 * Images. A moved gripper cloud must be re-rendered through the task's own observation pipeline
   (the authors' Occup -> DSA -> ObsImage). That pipeline is injected into ``mea_discrete_copies``
-  as a callable; without one a copy carries no images.
+  as a callable (the augmenter's: ``pipeline.discrete_reprojector``, Surgical Grasp Any's DSA image
+  of the copy's points); without one a copy carries no images.
 * Feasibility guards (implicit in the paper). (1) Every moved pivot ``pbar_t`` must lie inside the
   env's pivot workspace, or the env would clip the move and break the transition prior: a copy that
   leaves it is drawn again from scratch (rejection sampling, so a kept copy is a draw of the paper's
