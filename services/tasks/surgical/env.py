@@ -303,6 +303,31 @@ class SurgicalGraspEnv:
         """The observation of the current state (no time passes)."""
         return self._observation(self._perceive())
 
+    # --- placing a state (physics audits) ------------------------------------------------------
+    def place_state(
+        self, seed: int, pivot: np.ndarray, yaw: float, jaw_open: bool, reset: bool = True
+    ) -> None:
+        """Put the world into a recorded state, for ``services.augmenter.audit_surgical``: the task
+        from ``seed`` (its object where the seed places it, on the tray; ``reset=False`` keeps the
+        world as it is), the instrument at rest with its *measured* pivot at ``pivot`` (the commanded
+        pivot is corrected once for the drive's sag, then clipped to the workspace), at ``yaw``, the
+        jaw commanded open or closed; the policy in control (the P-controller latched off), no grasp
+        and the FSM normal, so the next ``step`` executes the given action through the drive."""
+        if reset:
+            self.reset(seed)
+        inst = self.instrument
+        want = np.asarray(pivot, np.float64)
+        command = want.copy()
+        for _ in range(2):  # place, measure the sag under gravity, place again corrected for it
+            tip = np.clip(inst.tip_from_pivot(command), WORKSPACE[:, 0], WORKSPACE[:, 1])
+            inst.reset(inst.pivot_from_tip(tip), float(yaw), jaw_open=bool(jaw_open))
+            for _ in range(SETTLE_STEPS):
+                self.step_physics()
+            command = command + (want - inst.measured_pivot()[0])
+        self.controller.active = False
+        self.trials, self.grasped, self.failed = 0, False, False
+        self.fsm = "prog_norm"
+
     # --- helpers for policies -----------------------------------------------------------------
     def discrete_action(self, index: int) -> np.ndarray:
         """The 5-vector of discrete action ``index`` (``proto.discrete_actions``) in the current state."""
