@@ -22,6 +22,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from proto.episode import Episode
+from services.augmenter.core.mea_discrete import DISCRETE_MEA_TASKS
 from services.augmenter.core.pipeline import AugmentSettings, mea_copy
 from services.augmenter.core.routing import MEA_KINDS
 from services.augmenter.metrics import auditor_metrics
@@ -34,7 +35,8 @@ AuditFn = Callable[[Episode, Episode], np.ndarray]
 
 
 class PhysicsAudit:
-    """The default audit: ``services.augmenter.audit_physics.audit_episode`` in one env per (task, points).
+    """The default audit: ``services.augmenter.audit_physics.audit_episode`` in one env per (task, points)
+    (``surgical_grasp_any``: ``services.augmenter.audit_surgical.audit_surgical``).
 
     Everything is imported and built lazily, on the audit thread, at the first copy audited."""
 
@@ -43,10 +45,20 @@ class PhysicsAudit:
         self._envs: dict = {}
 
     def __call__(self, copy: Episode, source: Episode) -> np.ndarray:
+        if copy.task in DISCRETE_MEA_TASKS:  # Surgical Grasp Any: its own replay of each transition
+            from services.augmenter.audit_surgical import audit_surgical  # pulls in pybullet
+
+            env = self._env(copy)
+            return np.asarray(
+                audit_surgical(env, copy, source, copy.augmentation.phase_split).valid, dtype=bool
+            )
         if self._audit is None:
             from services.augmenter.audit_physics import audit_episode  # pulls in pybullet
 
             self._audit = audit_episode
+        return np.asarray(self._audit(self._env(copy), copy, source).valid, dtype=bool)
+
+    def _env(self, copy: Episode):
         key = (copy.task, int(copy.points.shape[2]))
         env = self._envs.get(key)
         if env is None:
@@ -55,7 +67,7 @@ class PhysicsAudit:
 
             env = make_env(copy.task, EnvSettings(camera=CameraSettings(points_per_segment=key[1])))
             self._envs[key] = env
-        return np.asarray(self._audit(env, copy, source).valid, dtype=bool)
+        return env
 
     def close(self) -> None:
         for env in self._envs.values():

@@ -31,6 +31,7 @@ from services.augmenter.audit_placement import NotSimulableError, rotation_of
 from services.augmenter.core.audit_metrics import NON_TRIVIAL, AuditResult, AuditTolerance
 from services.augmenter.core.isometric import compose_with_mea
 from services.augmenter.core.mea import MeaSettings
+from services.augmenter.core.mea_discrete import DISCRETE_MEA_TASKS, MeaDiscreteSettings
 from services.augmenter.core.pipeline import (
     AugmentStats,
     episode_seed,
@@ -54,11 +55,13 @@ class AuditConfig:
     transitions the simulator reproduces, per kind (after measuring the noise floor)."""
 
     task: str = "block_pull"
-    """Task: block_pull, block_pick or drawer_open."""
+    """Task: block_pull, block_pick, drawer_open or surgical_grasp_any (its own audit:
+    ``services.bench.audit_surgical``; the views, isometric and tolerance flags do not apply)."""
     episodes: int = 10
     """Successful expert demonstrations to augment (alternating probe/direct, as the actor)."""
-    copies: int = 6
-    """MEA copies per demonstration (the paper's Equi-RSAC setting)."""
+    copies: int | None = None
+    """MEA copies per demonstration; default the task's: 6 (the paper's Equi-RSAC setting), 200 for
+    surgical_grasp_any (``--mea-discrete.copies``, the paper's GASv2 setting)."""
     isometric: int = 4
     """Isometric copies per demonstration (each with its own angle, as the augmenter's)."""
     mea_isometric: bool = True
@@ -83,12 +86,24 @@ class AuditConfig:
     """Tolerance: jaw opening difference (0..1); default: the task's."""
     mea: MeaSettings = field(default_factory=MeaSettings)
     """MEA settings audited (phases, group ranges, feasibility guards)."""
+    mea_discrete: MeaDiscreteSettings = field(default_factory=MeaDiscreteSettings)
+    """Discrete MEA settings audited for surgical_grasp_any (h_p, copies, C4 rate, workspace); its
+    tolerances are ``services.augmenter.audit_surgical.SurgicalTolerance``'s."""
 
     def __post_init__(self) -> None:
         if self.task not in TASK_CLASSES:
             raise ValueError(f"--task must be one of {', '.join(sorted(TASK_CLASSES))}, not {self.task!r}")
-        if self.episodes < 1 or self.max_attempts < 1 or min(self.copies, self.isometric, self.views) < 0:
+        if (
+            self.episodes < 1
+            or self.max_attempts < 1
+            or min(self.copies or 0, self.isometric, self.views) < 0
+        ):
             raise ValueError("episodes and max_attempts must be >= 1; copies, isometric and views >= 0")
+
+    @property
+    def mea_copies(self) -> int:
+        """MEA copies per demonstration of a general task (``copies``, default 6)."""
+        return 6 if self.copies is None else self.copies
 
     def tolerance(self, rotated: bool = False) -> AuditTolerance:
         """The task's tolerance (``rotated``: for turned copies), with the values given here."""
@@ -117,7 +132,7 @@ def audit_copies(
     reason). ``counts`` accumulates the MEA guards' work."""
     seed = episode_seed(cfg.seed, ep.episode_id)
     guards = AugmentStats()
-    made = kept_mea_copies(ep, cfg.mea, cfg.copies, seed, guards)
+    made = kept_mea_copies(ep, cfg.mea, cfg.mea_copies, seed, guards)
     counts["guard rejections"] += guards.rejections
     counts["cut"] += guards.cuts
     counts["empty"] += guards.mea_empty
@@ -139,7 +154,12 @@ def audit_copies(
 
 
 def run_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[str, Any]]:
-    """Record, measure the floor, augment and audit; returns (sections, meta) for ``emit``."""
+    """Record, measure the floor, augment and audit; returns (sections, meta) for ``emit``
+    (``surgical_grasp_any``: ``services.bench.audit_surgical``)."""
+    if cfg.task in DISCRETE_MEA_TASKS:
+        from services.bench.audit_surgical import run_surgical_audit
+
+        return run_surgical_audit(cfg)
     from services.actor.config import ActorConfig
     from services.actor.rollout import Actor
 
@@ -206,7 +226,7 @@ def run_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[s
         "of rotated copies once objects slide)": isotropy,
         "copies and runtime": [{
             "demos": len(demos), "expert attempts": attempts,
-            "copies requested": len(demos) * (cfg.isometric + cfg.copies * (1 + cfg.mea_isometric)),
+            "copies requested": len(demos) * (cfg.isometric + cfg.mea_copies * (1 + cfg.mea_isometric)),
             "audited": len(copies), "not simulable": sum(sum(r.values()) for r in skipped.values()), **counts,
             "non-trivial steps / MEA copy": float(np.mean(nontrivial)) if nontrivial else 0.0,
             "s / audited copy": timing["audit s"] / max(1, len(copies)), **timing,
@@ -234,7 +254,7 @@ def run_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[s
         "mea": dataclasses.asdict(cfg.mea),
         "seed": cfg.seed,
         "episodes": cfg.episodes,
-        "copies": cfg.copies,
+        "copies": cfg.mea_copies,
         "isometric": cfg.isometric,
     }
     return sections, meta

@@ -86,16 +86,19 @@ __all__ = [
     "FSM_STATES",
     "GRIPPER_STATES",
     "STATE_ROW",
+    "SURGICAL_GRASP_ANY",
     "DsaSpec",
     "camera_pose_noise",
     "decode_state_rows",
     "dsa_image",
     "dsa_image_from_voxels",
     "image_noise",
+    "in_cube",
     "state_blocks",
     "to_occupancy",
     "voxel_centroid",
     "voxelize",
+    "world_clouds",
 ]
 
 GRIPPER_STATES = ("open", "closed")
@@ -171,6 +174,16 @@ class DsaSpec:
         return math.floor(self.zoom * self.grid + 0.5)
 
 
+SURGICAL_GRASP_ANY = DsaSpec(origin=(0.0, 0.0, 0.035 * 5.0))
+"""The DSA spec of Surgical Grasp Any, the one place it is defined: the env's P-controller and policy
+image (``services.tasks.surgical``) and the augmenter's re-projection of MEA copies
+(``services.augmenter.core.pipeline.discrete_reprojector``) all use it. Its cube is 1 sim unit
+(20 cm real; the simulator is 5x real) on a side, world-aligned, centred on the workspace centre
+(0, 0, 0.035 x 5) = (0, 0, 0.175): the reference's 200^3 ``Occup`` grid. Its low corner
+(-0.5, -0.5, -0.325) lies on the 0.005 lattice the env downsamples clouds on, so a downsampled
+point is one occupied voxel."""
+
+
 # ------------------------------------------------------------------------------------------------
 # Occupancy
 # ------------------------------------------------------------------------------------------------
@@ -195,6 +208,13 @@ def to_occupancy(
             raise ValueError(f"cam_rotation must be a finite 3x3 matrix, got shape {rot.shape}")
         q = q @ rot.T
     return q
+
+
+def in_cube(points_world: np.ndarray, spec: DsaSpec, cam_rotation: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: which sim-world points ``voxelize`` keeps (inside the cube, finite), by the same
+    arithmetic, so a cloud cropped with it voxelises to the same set."""
+    c = (to_occupancy(points_world, spec, cam_rotation) + 0.5) * spec.grid
+    return np.logical_and(c >= 0, c < spec.grid).all(axis=1)
 
 
 def voxelize(points_occ: np.ndarray, spec: DsaSpec) -> np.ndarray:
@@ -250,6 +270,26 @@ def dsa_image(
     return dsa_image_from_voxels(
         g, o, spec, gripper_state=gripper_state, fsm_state=fsm_state, controller_state=controller_state
     )
+
+
+def world_clouds(points: np.ndarray, point_counts: np.ndarray, pivot: np.ndarray) -> list[np.ndarray]:
+    """The observed points of each segment of one episode row, back in the sim world (float64).
+
+    ``points`` (S, P, 3) are gripper-centric, ``point_counts`` (S,) the distinct points each segment
+    had and ``pivot`` the row's ``gripper_pose[:3]``: rows ``[:min(count, P)]`` are distinct observed
+    points (the rest repeat them, ``services.tasks.camera.sample_fixed``), returned as
+    ``float64(points) + float64(pivot)``. The surgical env renders its policy image from exactly these
+    (the float32 values it stores), so re-rendering a stored row reproduces its image bit for bit.
+    """
+    pts = np.asarray(points)
+    counts = np.asarray(point_counts)
+    if pts.ndim != 3 or pts.shape[2] != 3 or counts.shape != pts.shape[:1]:
+        raise ValueError(
+            f"points (S, P, 3) and point_counts (S,) expected, got {pts.shape} and {counts.shape}"
+        )
+    origin = np.asarray(pivot, dtype=np.float64).reshape(3)
+    P = pts.shape[1]
+    return [pts[i, : min(int(c), P)].astype(np.float64) + origin for i, c in enumerate(counts)]
 
 
 def dsa_image_from_voxels(

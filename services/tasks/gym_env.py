@@ -7,8 +7,9 @@ Observation: dict of ``points`` (S, P, 3) float32 in the gripper-centric frame a
 ``depth`` (84, 84) is added with ``depth_image=True``. Privileged state goes in ``info``.
 
 Surgical Grasp Any (``SurgicalGraspGymEnv``) acts in ``Discrete(9)`` (``proto.discrete_actions.NAMES``)
-and adds ``controller_state`` (1: the hybrid P-controller takes the next step, the action is ignored)
-and ``fsm_state`` to the observation; its points are in sim units (5 per real metre).
+and adds ``image`` (the (3, 64, 64) uint8 DSA policy image, ``services.observation.dsa``),
+``controller_state`` (1: the hybrid P-controller takes the next step, the action is ignored) and
+``fsm_state`` to the observation; its points are in sim units (5 per real metre).
 """
 
 from __future__ import annotations
@@ -94,8 +95,9 @@ class SurgicalGraspGymEnv(gym.Env):
         )
         self.sim = make_env("surgical_grasp_any", settings)
         S = len(self.sim.segment_names)
-        # TODO(h/sga-dsa): add the (3, 64, 64) uint8 DSA image once the env renders it
+        n = settings.dsa.image
         self.observation_space = spaces.Dict({
+            "image": spaces.Box(0, 255, (3, n, n), np.uint8),  # the DSA policy image (services.observation.dsa)
             "points": spaces.Box(-1.0, 1.0, (S, points_per_segment, 3), np.float32),  # sim units, gripper-centric
             "jaw": spaces.Box(0.0, 1.0, (1,), np.float32),
             "controller_state": spaces.Discrete(2),
@@ -105,7 +107,7 @@ class SurgicalGraspGymEnv(gym.Env):
 
     @staticmethod
     def _obs(o) -> dict[str, Any]:
-        return {"points": o.points, "jaw": np.array([o.jaw], np.float32),
+        return {"image": o.image, "points": o.points, "jaw": np.array([o.jaw], np.float32),
                 "controller_state": int(o.controller_state), "fsm_state": int(o.fsm_state)}  # fmt: skip
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):

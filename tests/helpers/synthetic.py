@@ -75,23 +75,27 @@ def synthetic_episode(seed: int, T: int = 20, xy: np.ndarray | None = None) -> t
 
 SURGICAL_STEP = 0.015
 """Sim metres per unit action of the synthetic surgical episodes (``MeaDiscreteSettings.delta_xyz``)."""
+SURGICAL_PIVOT_HEIGHT = 0.143
+"""The pivot's height above the closed jaw tips (the env calibrates 0.1430)."""
 
 
 def synthetic_surgical_episode(seed: int, P: int = 24, *, images: bool = True) -> Episode:
     """Surgical Grasp Any as its env records it, obeying the transition prior exactly: the hybrid
     P-controller's continuous approach (dx, dy, dz in [-1, 1], jaw open), a few discrete policy
     steps (``proto.discrete_actions``: +-x, +-y, +-z, +-yaw toward the object), then the jaw toggle
-    that ends it successfully. One object fixed in the world; the pivot starts at x = -0.225 (the
-    reference's x ratio -0.9) inside the [-0.25, 0.25]^2 x [0, 0.35] workspace."""
-    from proto.discrete_actions import NAMES, TOGGLE, to_vector
+    that ends it successfully. One object fixed in the world; the pivot (``SURGICAL_PIVOT_HEIGHT``
+    above the tips, as in the env) starts at x = -0.225 (the reference's x ratio -0.9) inside the
+    env's pivot workspace [-0.25, 0.25]^2 x [0.143, 0.493]."""
+    from proto.discrete_actions import NAMES, TOGGLE, index_of, to_vector
+    from services.observation.dsa import SURGICAL_GRASP_ANY, dsa_image, world_clouds
 
     rng = np.random.default_rng(seed)
     obj = np.array([rng.uniform(-0.1, 0.2), rng.uniform(-0.2, 0.2), 0.03])
     obj_cloud = obj + rng.normal(0.0, 0.01, (P, 3))
     grip_local = rng.normal(0.0, 0.01, (P, 3))
     grip_local -= grip_local.mean(0)
-    pos0 = np.array([-0.225, rng.uniform(-0.2, 0.2), rng.uniform(0.2, 0.3)])
-    target, pos, actions = obj + np.array([0.0, 0.0, 0.08]), pos0.copy(), []
+    pos0 = np.array([-0.225, rng.uniform(-0.2, 0.2), rng.uniform(0.2, 0.3) + SURGICAL_PIVOT_HEIGHT])
+    target, pos, actions = obj + np.array([0.0, 0.0, 0.08 + SURGICAL_PIVOT_HEIGHT]), pos0.copy(), []
     while np.any(np.abs(target - pos) > 0.03) and len(actions) < 60:  # the P-controller (Kp 10)
         a = np.zeros(5)
         a[0], a[1:4] = 1.0, np.clip(10.0 * (target - pos), -1.0, 1.0)
@@ -121,12 +125,20 @@ def synthetic_surgical_episode(seed: int, P: int = 24, *, images: bool = True) -
     contacts[-1] = True
     object_poses = np.zeros((T + 1, 1, 7), np.float32)
     object_poses[:, 0, :3], object_poses[:, 0, 6] = obj, 1.0
-    pictures = rng.integers(0, 256, (T + 1, 3, 64, 64), dtype=np.uint8) if images else None
+    points, poses = points.astype(np.float32), poses.astype(np.float32)
+    controller = np.r_[[index_of(a, True) is None and a[0] > 0 for a in actions], False]
+    pictures = None
+    if images:  # the env's DSA images of these points: jaw closed and done_success after the last step
+        pictures = np.stack([
+            dsa_image(*world_clouds(points[t], np.full(2, P), poses[t, :3]), SURGICAL_GRASP_ANY,
+                      gripper_state=int(t == T), fsm_state=5 if t == T else 0, controller_state=int(controller[t]))
+            for t in range(T + 1)
+        ])  # fmt: skip
     return Episode(
         episode_id=f"sga-{seed}", task="surgical_grasp_any", seed=seed, actor_id="sga", policy_version=-1,
         policy_kind="expert_direct", is_demo=True, created_at=1.0, segments=["gripper", "object_0"],
-        points=points.astype(np.float32), point_counts=np.full((T + 1, 2), P, np.int32), jaw=jaw, actions=actions,
+        points=points, point_counts=np.full((T + 1, 2), P, np.int32), jaw=jaw, actions=actions,
         rewards=np.r_[np.full(T - 1, -0.001), 1.0].astype(np.float32), terminated=terminated,
-        truncated=np.zeros(T, bool), gripper_pose=poses.astype(np.float32), object_poses=object_poses,
+        truncated=np.zeros(T, bool), gripper_pose=poses, object_poses=object_poses,
         contacts=contacts, images=pictures,
     )  # fmt: skip

@@ -54,3 +54,20 @@ def test_cli_prints_one_json_object(capsys):
         "all",
     ]
     assert out["meta"]["tolerance_covers_floor"] is True and out["meta"]["rotated_views"] >= 1
+
+
+@pytest.mark.timeout(120)
+def test_cli_audits_surgical_copies_against_their_noise_floor(capsys):
+    argv = ["--task", "surgical_grasp_any", "--episodes", "1", "--copies", "3", "--json"]
+    assert main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    meta = out["meta"]
+    assert (
+        meta["task"] == "surgical_grasp_any"
+        and meta["copies"] == 3
+        and set(meta["valid_pct"]) == {"raw", "mea"}
+    )
+    assert meta["valid_pct"]["raw"] == 100.0 and meta["valid_pct"]["mea"] >= 90.0
+    assert all(meta["tolerance_covers_floor"].values()) and meta["valid_pct_moved"] is not None
+    runtime = out["results"]["copies and runtime"][0]
+    assert runtime["copies made"] == 3 and runtime["moved transitions"] > 0

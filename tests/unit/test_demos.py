@@ -42,10 +42,12 @@ def test_surgical_demos_are_oracle_grasps_that_record_the_executed_actions(tmp_p
         assert e.policy_kind == "expert_direct" and e.is_demo and e.fixed_object == -1
         assert e.segments == ["gripper", "object_0"] and e.succeeded and e.rewards[-1] == 1.0
         assert e.terminated[-1] and not e.truncated.any()
-        # the hybrid controller's approach first (continuous moves of up to 1 cm real: 0.05 sim units),
-        # then the oracle's discrete actions only, ending in a closing and lifts
+        # the hybrid controller's approach first (continuous moves, saturated at one discrete step of
+        # 0.3 cm real, 0.015 sim units, per axis: the same scale as the policy's actions), then the
+        # oracle's discrete actions only, ending in a closing and lifts
         steps = np.abs(np.diff(e.gripper_pose[:, :3], axis=0)).max(axis=1)
-        assert steps[0] > 0.02
+        assert steps[0] == pytest.approx(0.015, abs=5e-4) and (steps < 0.015 + 5e-4).all()
+        assert index_of(e.actions[0], True) is None  # a diagonal move: not one of the nine
         jaw_open, indices = True, []
         for a in e.actions:
             indices.append(index_of(a, jaw_open))

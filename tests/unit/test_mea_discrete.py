@@ -30,6 +30,7 @@ from services.augmenter.core.mea_discrete import (
     phase_split,
 )
 from services.augmenter.core.pipeline import AugmentSettings, augment_episode, episode_seed, mea_copy_rng
+from services.observation.dsa import decode_state_rows
 from tests.helpers import build_episode
 from tests.helpers.synthetic import SURGICAL_STEP, synthetic_surgical_episode
 
@@ -54,7 +55,7 @@ def _kind(a: np.ndarray) -> tuple[str, int | None]:
 
 def test_settings_defaults_and_validation():
     assert (S.h_p, S.copies, S.p_rotate, S.delta_xyz) == (5, 200, 0.3, 0.015) and S.delta_xyz == SURGICAL_STEP
-    assert np.allclose(np.subtract(S.pivot_high, S.pivot_low), [0.5, 0.5, 0.35]) and S.pivot_low[2] == 0.0
+    assert np.allclose(np.subtract(S.pivot_high, S.pivot_low), [0.5, 0.5, 0.35]) and S.pivot_low[2] == 0.143
     for bad in ({"h_p": -1}, {"p_rotate": 1.5}, {"delta_xyz": 0.0}, {"pivot_low": (0.3, -0.25, 0.0)}):
         with pytest.raises(ValueError):
             MeaDiscreteSettings(**bad)
@@ -375,9 +376,16 @@ def test_the_pipeline_gives_the_surgical_task_discrete_mea_and_no_isometric_copi
     assert out[0] is ep and out[0].images is not None  # the raw episode keeps the env's own images
     assert [e.augmentation.kind for e in out[1:]] == ["mea"] * 7
     assert stats.mea_made == 7 and stats.outputs == 8 and stats.transitions == sum(e.num_steps for e in out)
-    assert all(QUARTER_TURNS_PARAM in e.augmentation.params and e.images is None for e in out[1:])
+    assert all(QUARTER_TURNS_PARAM in e.augmentation.params for e in out[1:])
+    for e in out[1:]:  # re-rendered (discrete_reprojector), with the source's state rows
+        assert e.images.shape == (e.num_steps + 1, 3, 64, 64) and e.images.dtype == np.uint8
+        start = int(e.augmentation.params["start"][0])
+        src = ep.images[start:]
+        assert [decode_state_rows(i) for i in e.images] == [decode_state_rows(i) for i in src]
+    assert augment_episode(ep, dataclasses.replace(settings, reproject=False))[0][1].images is None
     seed = episode_seed(settings.seed, ep.episode_id)
-    assert out[3].encode() == mea_discrete_copy(ep, S, copy_rng(seed, 2), 2, seed=seed).encode()
+    again = mea_discrete_copy(ep, S, copy_rng(seed, 2), 2, seed=seed)
+    assert dataclasses.replace(out[3], images=None).encode() == again.encode()
     assert augment_episode(ep, dataclasses.replace(settings, mea_on="none"))[0] == [ep]
     failed = dataclasses.replace(ep, terminated=np.zeros(ep.num_steps, bool), truncated=ep.terminated)
     assert len(augment_episode(failed, settings)[0]) == 1  # demos only (the default)

@@ -31,7 +31,8 @@ Read beside the paper and the authors' GASv2 code (``tasks-and-baselines.md`` se
   copy's gripper is elsewhere (the non-trivial phase is the one without interaction).
 * Images. A moved gripper cloud must be re-rendered through the task's own observation pipeline
   (the authors' Occup -> DSA -> ObsImage). That pipeline is injected into ``mea_discrete_copies``
-  as a callable; without one a copy carries no images.
+  as a callable (the augmenter's: ``pipeline.discrete_reprojector``, Surgical Grasp Any's DSA image
+  of the copy's points); without one a copy carries no images.
 * Feasibility guards (implicit in the paper). (1) Every moved pivot ``pbar_t`` must lie inside the
   env's pivot workspace, or the env would clip the move and break the transition prior: a copy that
   leaves it is drawn again from scratch (rejection sampling, so a kept copy is a draw of the paper's
@@ -86,17 +87,23 @@ class MeaDiscreteSettings:
     delta_xyz: float = 0.015
     """Sim metres the pivot moves per unit of dx, dy or dz. Must equal the env's step (0.05 m world
     step x 0.3 discrete scale); the transition prior D_t rests on it."""
-    pivot_low: tuple[float, float, float] = (-0.25, -0.25, 0.0)
-    """Lower bounds of the gripper pivot (x, y, z), sim metres: the 0.5 x 0.5 x 0.35 workspace
-    centred at x = y = 0 above z = 0. Must equal the env's clipping bounds of ``gripper_pose``."""
-    pivot_high: tuple[float, float, float] = (0.25, 0.25, 0.35)
-    """Upper bounds of the gripper pivot (x, y, z), sim metres (must equal the env's)."""
+    pivot_low: tuple[float, float, float] = (-0.25, -0.25, 0.143)
+    """Lower bounds of the gripper pivot (x, y, z), sim metres: the env's (``SurgicalGraspEnv.
+    pivot_bounds``), its 0.5 x 0.5 x 0.35 workspace of the closed jaw tips (centred at x = y = 0,
+    above the tray at z = 0) raised by the pivot's height above the tips (0.1430, calibrated by the
+    env; a test keeps the two equal to 1e-4)."""
+    pivot_high: tuple[float, float, float] = (0.25, 0.25, 0.493)
+    """Upper bounds of the gripper pivot (x, y, z), sim metres (the env's, as ``pivot_low``)."""
+    bound_tolerance: float = 5e-4
+    """A moved pivot may lie this far (sim metres) outside the bounds: recorded pivots are measured,
+    and sit within about 2e-4 of the commanded ones the env clips (the drive's settling and sag)."""
     max_redraws: int = 20
     """Fresh draws of a copy that left the workspace before it is given up."""
-    prior_tolerance: float | None = 0.003
-    """Recorded pivot motion may differ from ``delta_xyz * a`` by this much (m, a fifth of a step)
-    and still count as free; None: trust every recorded step. To be tightened to the env's
-    measured noise floor (``mea audit``)."""
+    prior_tolerance: float | None = 0.0015
+    """Recorded pivot motion may differ from ``delta_xyz * a`` by this much (sim m, a tenth of a
+    step) and still count as free; None: trust every recorded step. The env's recorded steps follow
+    the prior within 0.0002 (the drive's settling), 0.0007 with domain randomisation's action noise
+    (its bound: 0.0005 per axis); a workspace clip or a blocked move misses by more."""
 
     def __post_init__(self) -> None:
         if self.h_p < 0 or self.copies < 0 or self.max_redraws < 0:
@@ -105,6 +112,8 @@ class MeaDiscreteSettings:
             raise ValueError(f"p_rotate must be in [0, 1], got {self.p_rotate}")
         if self.delta_xyz <= 0.0 or not np.all(np.less(self.pivot_low, self.pivot_high)):
             raise ValueError("delta_xyz must be > 0 and pivot_low < pivot_high")
+        if not 0.0 <= self.bound_tolerance < self.delta_xyz:
+            raise ValueError(f"bound_tolerance must be in [0, delta_xyz), got {self.bound_tolerance}")
 
 
 @dataclass
@@ -139,8 +148,9 @@ def free_motion_start(ep: Episode, hp: int, s: MeaDiscreteSettings) -> int:
 
 
 def inside(pos: np.ndarray, s: MeaDiscreteSettings) -> np.ndarray:
-    """Per row of ``pos`` (..., 3): the pivot lies inside the workspace (bounds included)."""
-    lo, hi = np.asarray(s.pivot_low) - 1e-9, np.asarray(s.pivot_high) + 1e-9
+    """Per row of ``pos`` (..., 3): the pivot lies inside the workspace (bounds included, widened by
+    ``bound_tolerance``)."""
+    lo, hi = np.asarray(s.pivot_low) - s.bound_tolerance, np.asarray(s.pivot_high) + s.bound_tolerance
     return np.all((pos >= lo) & (pos <= hi), axis=-1)
 
 

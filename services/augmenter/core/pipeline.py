@@ -31,12 +31,14 @@ Discrete-action tasks (``mea_discrete.DISCRETE_MEA_TASKS``: Surgical Grasp Any)
     copies from ``mea_discrete.py`` (timestep phases, C4 actions); no isometric copies (the paper,
     Sec. VI: the camera is not top-down) and ``observation`` does not apply. With ``reproject`` each
     copy is re-rendered by ``discrete_reprojector(task)``, the one place the task's observation
-    pipeline is wired; where none is, copies carry no images.
+    pipeline is wired (Surgical Grasp Any: ``reproject_dsa``, the env's DSA image of the copy's
+    moved points with the source's state rows); where none is, copies carry no images.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -60,6 +62,7 @@ from services.observation.depth_image import (
     policy_images,
     rotate_images,
 )
+from services.observation.dsa import SURGICAL_GRASP_ANY, DsaSpec, decode_state_rows, dsa_image, world_clouds
 from services.observation.projection import ProjectionSpec, segment_policy_images
 
 MEA_ON = ("demos", "successes", "all", "none")
@@ -258,14 +261,31 @@ def _augment_depth(raw: Episode, s: AugmentSettings, seed: int) -> list[Episode]
 
 
 def discrete_reprojector(task: str) -> Callable[[Episode], Episode] | None:
-    """The observation pipeline that re-renders MEA copies of ``task`` (``mea_discrete.Reproject``).
-
-    INTEGRATION POINT (issue 14): wire Surgical Grasp Any's DSA observation
-    (``services/observation/dsa.py``, ``dsa_image``) here once it lands: world clouds are
-    ``points + gripper_pose[:, None, None, :3]``, and the gripper/FSM/controller state rows come from
-    the source images the copy still carries. Until then: None, and the copies carry no images."""
-    del task
+    """The observation pipeline that re-renders MEA copies of ``task`` (``mea_discrete.Reproject``):
+    ``surgical_grasp_any``'s DSA image (``reproject_dsa`` with ``dsa.SURGICAL_GRASP_ANY``, the spec the
+    env renders with); None for a task without one (its copies then carry no images)."""
+    if task == "surgical_grasp_any":
+        return functools.partial(reproject_dsa, spec=SURGICAL_GRASP_ANY)
     return None
+
+
+def reproject_dsa(copy: Episode, spec: DsaSpec) -> Episode:
+    """``copy`` with every row's DSA image rendered from its own (moved) points, as the surgical env
+    renders a raw row: ``dsa_image`` of ``dsa.world_clouds(points, point_counts, gripper_pose[:3])``
+    (the observed rows of each segment plus the pivot, so the gripper's cloud moves with the copy's
+    pivot and the object's stays where it was in the world). The state row (gripper, FSM and
+    controller state), which MEA leaves unchanged, is read from the source images ``copy`` still
+    carries (``dsa.decode_state_rows``); ValueError when it carries none. A row MEA did not move is
+    the source's row, so it re-renders to the source's image bit for bit."""
+    if copy.images is None or len(copy.images) != copy.num_steps + 1:
+        raise ValueError(f"images: {copy.episode_id} must carry its source's images to read their state rows")
+    n = spec.image
+    images = np.empty((copy.num_steps + 1, 3, n, n), np.uint8)
+    for t in range(copy.num_steps + 1):
+        gripper, obj = world_clouds(copy.points[t], copy.point_counts[t], copy.gripper_pose[t, :3])
+        g, f, c = decode_state_rows(copy.images[t])
+        images[t] = dsa_image(gripper, obj, spec, gripper_state=g, fsm_state=f, controller_state=c)
+    return dataclasses.replace(copy, images=images)
 
 
 def _augment_discrete(raw: Episode, s: AugmentSettings, seed: int, stats: AugmentStats) -> list[Episode]:

@@ -1,8 +1,9 @@
 """The hybrid controller of Surgical Grasp Any (reference ``wrapper/pid.py``) and the FSM rewards.
 
 The P-controller measures the error between the gripper's and the object's voxel centroids in the
-occupancy grid (occupancy units: the grid's unit cube, 1 unit = 1 sim unit = 20 cm real here),
-plus an offset that keeps the gripper above the object:
+occupancy grid (``services.observation.dsa.voxel_centroid`` with the task's ``DsaSpec``, the one
+voxelisation the policy image uses too; occupancy units: the grid's unit cube, 1 unit = 1 sim unit
+= 20 cm real here), plus an offset that keeps the gripper above the object:
 
     err = centroid(gripper) - centroid(object) + error_offset
 
@@ -18,25 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.tasks.surgical.settings import FSM_STATES, ControllerSettings, OccupancySettings, RewardSettings
-
-
-def voxel_centroid(points_world: np.ndarray, spec: OccupancySettings) -> np.ndarray | None:
-    """Centroid of the occupied voxels of ``points_world`` (K, 3), in occupancy units (voxel index x
-    voxel edge, the reference's ``mean(nonzero) * grid_size``); None when no point falls in the grid.
-
-    TODO(h/sga-dsa): switch to ``services.observation.dsa.voxel_centroid(points_world, spec)`` (same
-    semantics) when it lands, so the controller and the policy image share one voxelisation."""
-    if len(points_world) == 0:
-        return None
-    edge = spec.extent / spec.voxels
-    low = np.asarray(spec.centre) - spec.extent / 2
-    idx = np.floor((np.asarray(points_world, np.float64) - low) / edge).astype(np.int64)
-    idx = idx[((idx >= 0) & (idx < spec.voxels)).all(axis=1)]
-    if len(idx) == 0:
-        return None
-    occupied = np.unique(idx, axis=0)
-    return occupied.mean(axis=0) * edge
+from services.tasks.surgical.settings import FSM_STATES, ControllerSettings, RewardSettings
 
 
 def centroid_error(

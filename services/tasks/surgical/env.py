@@ -9,9 +9,16 @@ Action: the 5-vector (jaw, dx, dy, dz, dtheta) in [-1, 1]. The policy's nine dis
 as such vectors (``proto.discrete_actions``); any finite vector is accepted and clipped. Who acts:
 
 - while ``controller_state`` is 1 the P-controller (``control.HybridController``) acts and the
-  given action is ignored; its continuous action moves ``a * unit_translation`` (1 cm real per unit);
-- afterwards the given action acts, scaled by the discrete scales: ``a * 0.3 * unit_translation``
-  and ``a * 1.0 * 45 degrees``.
+  given action is ignored (its continuous action, each axis in [-1, 1], jaw open);
+- afterwards the given action acts.
+
+Either way one scale applies (``ActionSettings.step_translation``, ``step_rotation``): a unit of
+dx, dy or dz moves the tips ``0.3 * unit_translation`` (0.015 sim, 3 mm real) and a unit of dtheta
+turns 45 degrees. So every recorded step satisfies the transition prior MEA rests on,
+``pivot_{t+1} - pivot_t = 0.015 * a_t[dx, dy, dz]`` (within the drive's settling, measured under
+0.2 mm sim; domain randomisation adds its action noise), except where ``info['clipped']`` (a
+workspace or yaw limit clipped the command) or ``info['blocked']`` (the tool did not reach the
+commanded pivot, ``blocked_tolerance``) says otherwise.
 
 ``info['executed_action']`` is the action that produced the next observation (the controller's or
 the policy's), which is what an episode must record. The jaw component is the jaw command after
@@ -28,6 +35,19 @@ so does opening the jaw on a grasped object (it drops). Rewards: +1 success, -0.
 abnormal step (a workspace or yaw limit clipped the command, or the gripper centroid dived below
 ``fsm_z_err_min``), -0.001 otherwise. ``terminated`` marks success and failure (both end the task);
 ``truncated`` only the 80-step limit.
+
+Observation: the camera's masked depth pixels (with the image noise of domain randomisation) are
+back-projected, cropped to the DSA cube and downsampled to one point per voxel (``world``: what the
+P-controller's voxel centroids see); each segment's cloud is then drawn to ``points_per_segment``
+gripper-centric points (``point_counts``: how many distinct points it had). ``image`` is the policy
+image, ``services.observation.dsa.dsa_image`` (3 x 64 x 64 uint8; state row: gripper_state 1 when
+the jaw is commanded closed, fsm_state, controller_state) of exactly the stored points
+(``dsa.world_clouds``: the observed rows plus the stored pivot), so that MEA copies, re-rendered
+from their moved points by the same two functions, share the raw images' distribution and a copy
+that is not moved reproduces them bit for bit. The cost: where a cloud had more distinct points than
+``points_per_segment`` (the gripper: about 400 to 550 voxels against 256 points) the image shows the
+drawn subset. No ``cam_rotation``: the camera pose noise of domain randomisation already moved the
+rendering camera, so the points carry it.
 """
 
 from __future__ import annotations
@@ -37,16 +57,11 @@ import pybullet as pb
 
 from proto.actions import ACTION_DIM
 from proto.discrete_actions import NAMES, to_vector
+from services.observation.dsa import dsa_image, in_cube, voxel_centroid, world_clouds
 from services.tasks.camera import _downsample, sample_fixed
 from services.tasks.env import EnvSettings, Observation
 from services.tasks.surgical.camera import CameraPose, ObliqueCamera, image_noise
-from services.tasks.surgical.control import (
-    HybridController,
-    centroid_error,
-    fsm_index,
-    fsm_reward,
-    voxel_centroid,
-)
+from services.tasks.surgical.control import HybridController, centroid_error, fsm_index, fsm_reward
 from services.tasks.surgical.scene import WORKSPACE, Scene, draw
 from services.tasks.surgical.settings import SurgicalCameraSettings, SurgicalSettings
 
@@ -179,19 +194,17 @@ class SurgicalGraspEnv:
         a = self._validate(action)
         s, acts = self.settings, self.settings.actions
         by_controller = self.controller.active
-        if by_controller:
-            executed, t_scale, r_scale = self.controller.action(self._err), 1.0, 1.0
-        else:
-            executed = np.clip(a, -1.0, 1.0)
-            t_scale, r_scale = acts.discrete_position_scale, acts.discrete_rotation_scale
-        delta = executed[1:4] * t_scale * acts.unit_translation
-        turn = float(executed[4]) * r_scale * acts.unit_rotation
+        executed = self.controller.action(self._err) if by_controller else np.clip(a, -1.0, 1.0)
+        delta = executed[1:4] * acts.step_translation  # one scale for the controller and the policy
+        turn = float(executed[4]) * acts.step_rotation
         if s.randomisation.enabled and s.randomisation.action_noise > 0:
             u = self._rng(9).uniform(-1.0, 1.0, 4) * s.randomisation.action_noise
             delta, turn = delta + u[:3] * acts.unit_translation, turn + float(u[3]) * acts.unit_rotation
         was_open = self.jaw_open
         clipped = self._command(delta, turn, bool(executed[0] >= 0))
         self.instrument.settle(self.step_physics, RAMP_STEPS, s.min_substeps, s.max_substeps, s.tolerance)
+        reached, _ = self.instrument.measured_pivot()
+        blocked = bool(np.linalg.norm(reached - self.instrument.state.pivot) > s.blocked_tolerance)
         self._grasp_logic(was_open)
         self.t += 1
         world = self._perceive()
@@ -202,7 +215,8 @@ class SurgicalGraspEnv:
         obs = self._observation(world)
         success = self.fsm == "done_success"
         info = {"success": success, "fsm": self.fsm, "executed_action": executed.astype(np.float32),
-                "controller_acted": by_controller, "clipped": clipped, "grasped": self.grasped}  # fmt: skip
+                "controller_acted": by_controller, "clipped": clipped, "blocked": blocked,
+                "grasped": self.grasped}  # fmt: skip
         return obs, fsm_reward(self.fsm, s.rewards), terminated, truncated, info
 
     def _command(self, delta: np.ndarray, turn: float, jaw_open: bool) -> bool:
@@ -248,15 +262,13 @@ class SurgicalGraspEnv:
         masks = {"gripper": seg == self.instrument.body, "object_0": seg == self.scene.object}
         if s.randomisation.enabled:
             z, masks = image_noise(z, masks, s.randomisation, s.camera.distance, self._rng(8))
-        occ = s.occupancy
-        low, high = np.asarray(occ.centre) - occ.extent / 2, np.asarray(occ.centre) + occ.extent / 2
         world = {}
         for name, mask in masks.items():
             pts = self.camera.unproject(mask, z)
-            pts = pts[((pts >= low) & (pts < high)).all(axis=1)]  # the occupancy grid's cube
+            pts = pts[in_cube(pts, s.dsa)]  # the occupancy grid's cube
             world[name] = _downsample(pts, s.camera.downsample_voxel)
         self._err = centroid_error(
-            voxel_centroid(world["gripper"], occ), voxel_centroid(world["object_0"], occ), s.controller
+            voxel_centroid(world["gripper"], s.dsa), voxel_centroid(world["object_0"], s.dsa), s.controller
         )
         return world
 
@@ -270,24 +282,51 @@ class SurgicalGraspEnv:
         for i, name in enumerate(self.segment_names):
             pts = world[name]
             points[i], counts[i] = sample_fixed(pts - pivot if len(pts) else pts, P, rng)
-        # TODO(h/sga-dsa): image = services.observation.dsa.dsa_image(world["gripper"], world["object_0"],
-        #     spec, gripper_state=int(self.jaw_open), fsm_state=fsm_index(self.fsm),
-        #     controller_state=int(self.controller.active), cam_rotation=<the DR camera rotation>)
+        pose = np.array([*pivot, yaw], np.float32)
+        controller_state, fsm_state = int(self.controller.active), fsm_index(self.fsm)
+        gripper, obj = world_clouds(points, counts, pose[:3])
+        image = dsa_image(gripper, obj, s.dsa, gripper_state=int(not self.jaw_open), fsm_state=fsm_state,
+                          controller_state=controller_state)  # fmt: skip
         return Observation(
             points=points,
             point_counts=counts,
             jaw=self.instrument.jaw_opening(),
-            gripper_pose=np.array([*pivot, yaw], np.float32),
+            gripper_pose=pose,
             object_poses=self.scene.object_pose()[None].astype(np.float32),
             contacts=np.array([self.instrument.touches(self.scene.object)]),
-            image=None,
-            controller_state=int(self.controller.active),
-            fsm_state=fsm_index(self.fsm),
+            image=image,
+            controller_state=controller_state,
+            fsm_state=fsm_state,
         )
 
     def observe(self) -> Observation:
         """The observation of the current state (no time passes)."""
         return self._observation(self._perceive())
+
+    # --- placing a state (physics audits) ------------------------------------------------------
+    def place_state(
+        self, seed: int, pivot: np.ndarray, yaw: float, jaw_open: bool, reset: bool = True
+    ) -> None:
+        """Put the world into a recorded state, for ``services.augmenter.audit_surgical``: the task
+        from ``seed`` (its object where the seed places it, on the tray; ``reset=False`` keeps the
+        world as it is), the instrument at rest with its *measured* pivot at ``pivot`` (the commanded
+        pivot is corrected once for the drive's sag, then clipped to the workspace), at ``yaw``, the
+        jaw commanded open or closed; the policy in control (the P-controller latched off), no grasp
+        and the FSM normal, so the next ``step`` executes the given action through the drive."""
+        if reset:
+            self.reset(seed)
+        inst = self.instrument
+        want = np.asarray(pivot, np.float64)
+        command = want.copy()
+        for _ in range(2):  # place, measure the sag under gravity, place again corrected for it
+            tip = np.clip(inst.tip_from_pivot(command), WORKSPACE[:, 0], WORKSPACE[:, 1])
+            inst.reset(inst.pivot_from_tip(tip), float(yaw), jaw_open=bool(jaw_open))
+            for _ in range(SETTLE_STEPS):
+                self.step_physics()
+            command = command + (want - inst.measured_pivot()[0])
+        self.controller.active = False
+        self.trials, self.grasped, self.failed = 0, False, False
+        self.fsm = "prog_norm"
 
     # --- helpers for policies -----------------------------------------------------------------
     def discrete_action(self, index: int) -> np.ndarray:
@@ -297,6 +336,12 @@ class SurgicalGraspEnv:
     def sample_action(self, rng: np.random.Generator) -> np.ndarray:
         """A uniformly random discrete action as its 5-vector (the random policy's)."""
         return self.discrete_action(int(rng.integers(len(NAMES))))
+
+    def pivot_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) (3,) of the commanded pivot: the tips' workspace raised by the pivot height
+        (what MEA's ``MeaDiscreteSettings.pivot_low`` / ``pivot_high`` must equal)."""
+        lift = np.array([0.0, 0.0, self.pivot_height])
+        return WORKSPACE[:, 0] + lift, WORKSPACE[:, 1] + lift
 
     def tip(self) -> np.ndarray:
         """Commanded closed-jaw tip position (privileged)."""

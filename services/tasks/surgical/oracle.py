@@ -53,8 +53,7 @@ class Oracle:
         if env.grasped:
             return NAMES.index("+z")
         acts = env.settings.actions
-        step_t = acts.unit_translation * acts.discrete_position_scale
-        step_r = acts.unit_rotation * acts.discrete_rotation_scale
+        step_t, step_r = acts.step_translation, acts.step_rotation
         tip, yaw = env.tip(), env.instrument.state.yaw
         goal = env.scene.object_pose()[:2]
         goal_yaw = nearest_grasp_yaw(env.scene.object_yaw(), yaw, acts.yaw_limit)

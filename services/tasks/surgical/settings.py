@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from services.observation.dsa import SURGICAL_GRASP_ANY, DsaSpec
+
 SCALING = 5.0
 """Sim units per real metre (SurRoL's world scaling)."""
 
@@ -29,20 +31,40 @@ def real(metres: float) -> float:
 
 @dataclass(frozen=True)
 class ActionSettings:
-    """What one unit of action moves (reference ``psm_env._set_action`` and ``DiscreteAction``)."""
+    """What one unit of action moves (reference ``psm_env._set_action`` and ``DiscreteAction``).
+
+    One scale for every stored action: a unit of dx, dy or dz moves the tips ``step_translation``
+    (``unit_translation x discrete_position_scale`` = 0.015 sim, 3 mm real) whoever acted, the
+    policy or the hybrid P-controller, and a unit of dtheta turns ``step_rotation`` (45 degrees).
+    The reference's P-controller instead drives the raw env (1 cm real per unit) beneath its
+    discrete-action wrapper, so its steps and the policy's mean different motions while the episode
+    does not say which was which; here the controller's clipped output in [-1, 1] moves at most one
+    discrete step per axis, and ``pivot_{t+1} - pivot_t = step_translation * a_t`` holds for every
+    recorded step (unless a limit clipped it: ``info['clipped']``, or the tool was blocked:
+    ``info['blocked']``), which is the transition prior MEA's ``delta_xyz`` rests on."""
 
     unit_translation: float = real(0.01)
-    """Sim units moved per unit of a translation component: 1 cm real (0.05 sim)."""
+    """Sim units per unit of the raw env's translation: 1 cm real (0.05 sim), the reference's."""
     unit_rotation: float = math.radians(45.0)
-    """Radians turned per unit of the rotation component (45 degrees)."""
+    """Radians turned per unit of the raw env's rotation (45 degrees)."""
     discrete_position_scale: float = 0.3
-    """A policy action's translation is scaled by this (the reference's simulated ``pos_action_scale``):
-    a discrete +-x step moves 0.3 cm real."""
+    """Every executed translation is scaled by this (the reference's simulated ``pos_action_scale``):
+    a discrete +-x step, or a saturated P-controller axis, moves 0.3 cm real."""
     discrete_rotation_scale: float = 1.0
-    """A policy action's rotation is scaled by this: a discrete +-yaw step turns 45 degrees."""
+    """Every executed rotation is scaled by this: a discrete +-yaw step turns 45 degrees."""
     yaw_limit: float = math.pi
     """The commanded yaw is clipped to [-yaw_limit, yaw_limit] (the jaws are two-fold symmetric, so
     +-pi reaches every grasp orientation)."""
+
+    @property
+    def step_translation(self) -> float:
+        """Sim units the tips move per unit of a stored dx, dy or dz (0.015: MEA's ``delta_xyz``)."""
+        return self.unit_translation * self.discrete_position_scale
+
+    @property
+    def step_rotation(self) -> float:
+        """Radians turned per unit of a stored dtheta."""
+        return self.unit_rotation * self.discrete_rotation_scale
 
 
 @dataclass(frozen=True)
@@ -96,18 +118,8 @@ class SurgicalCameraSettings:
     points_per_segment: int = 256
     """Points drawn per segment (services.tasks.camera.sample_fixed)."""
     downsample_voxel: float = 1.0 / 200.0
-    """One point per occupied voxel of this edge (the occupancy grid's voxel) before the draw."""
-
-
-@dataclass(frozen=True)
-class OccupancySettings:
-    """The occupancy grid the P-controller measures centroids in (reference ``Occup``: 200^3 voxels
-    over a unit cube). Axes are the world's; the grid is centred on the workspace centre."""
-
-    centre: tuple[float, float, float] = (0.0, 0.0, real(0.035))
-    extent: float = 1.0
-    """Edge of the cube (sim units): 20 cm real."""
-    voxels: int = 200
+    """One point per occupied voxel of this edge before the draw: the DSA grid's voxel (its lattice
+    contains the grid's corner, so each point is one occupied DSA voxel)."""
 
 
 @dataclass(frozen=True)
@@ -165,11 +177,18 @@ class SurgicalSettings:
     min_substeps: int = 8
     tolerance: float = 2e-4
     """Pivot position error (sim units) at which an action counts as reached."""
+    blocked_tolerance: float = 1e-3
+    """After a step's physics, a pivot further than this from the commanded one (sim units, 0.2 mm
+    real; free motion and lifting settle within 0.2 mm sim) is reported as ``info['blocked']``."""
     actions: ActionSettings = field(default_factory=ActionSettings)
     controller: ControllerSettings = field(default_factory=ControllerSettings)
     rewards: RewardSettings = field(default_factory=RewardSettings)
     camera: SurgicalCameraSettings = field(default_factory=SurgicalCameraSettings)
-    occupancy: OccupancySettings = field(default_factory=OccupancySettings)
+    dsa: DsaSpec = SURGICAL_GRASP_ANY
+    """The occupancy grid (200^3 voxels over a 1-sim-unit cube, world-aligned, centred on the
+    workspace centre) and the policy image the P-controller's centroids and the observation's
+    ``image`` come from; the augmenter re-projects MEA copies with the same spec
+    (``services.observation.dsa.SURGICAL_GRASP_ANY``)."""
     randomisation: RandomisationSettings = field(default_factory=RandomisationSettings)
 
     def __post_init__(self) -> None:
