@@ -62,8 +62,9 @@ class Episode(Message):
     """A finished episode: policy observations, actions, rewards, flags and privileged state."""
 
     TYPE = "Episode"
-    VERSION = 2
-    OLDER_READABLE = {1: frozenset({"fixed_object"})}  # v2 added fixed_object
+    VERSION = 3
+    OLDER_READABLE = {1: frozenset({"fixed_object", "conditions"}), 2: frozenset({"conditions"})}
+    # v2 added fixed_object, v3 conditions
 
     episode_id: str = spec(Str(pattern=ID_PATTERN), "unique id, `<actor_id>-<seed>-<counter>` by convention")
     task: str = spec(Str(choices=TASKS), "task name")
@@ -121,6 +122,13 @@ class Episode(Message):
         Opt(Arr(("uint8", "uint16", "float16", "float32"), ("T+1", "C", "H", "W"), finite=True)),
         "optional images (channels first): uint8 policy images or float16 rendered depth (3.5); nil when "
         "the consumer renders them",
+        default=None,
+    )
+    conditions: dict | None = spec(
+        Opt(MapOf(Arr(("float32", "float64", "int64"), ("N",), finite=True))),
+        "privileged: what the env drew for this episode besides its seed (domain randomisation: "
+        "`randomised` (1,) 0/1, `camera_offsets` (4,) distance sim units, pitch, roll, yaw degrees, "
+        "`object_scale` (1,), `object_kind` (1,) index into the task's objects); nil where none (3.6)",
         default=None,
     )
     augmentation: Augmentation | None = spec(

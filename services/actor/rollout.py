@@ -49,6 +49,9 @@ def run_episode(
     reports one: in ``surgical_grasp_any`` the hybrid controller's approach replaces the policy's."""
     obs = env.reset(seed)
     builder.meta["fixed_object"] = env.task.fixed_index()  # privileged, for the learner's critic
+    conditions = getattr(env, "episode_conditions", None)  # what the env drew besides the seed
+    if conditions is not None:
+        builder.meta["conditions"] = conditions()
     builder.observe(obs)
     for _ in range(env.settings.max_steps):
         t0 = time.perf_counter()

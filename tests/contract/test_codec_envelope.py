@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import pytest
 
 from proto.codec import decode
@@ -51,6 +52,7 @@ def test_an_episode_recorded_before_fixed_object_reads_as_the_current_version() 
     wire = episode_wire()
     wire["_v"] = 1
     wire.pop("fixed_object", None)
+    wire.pop("conditions", None)
     ep = decode(pack(wire))
     assert isinstance(ep, Episode) and ep.fixed_object == -1
     assert unpack(ep.encode(), DEFAULT_LIMITS)["_v"] == Episode.VERSION  # written back as the current one
@@ -75,3 +77,13 @@ def test_trailing_bytes_refused() -> None:
     data = sample("Heartbeat").encode()
     decode(data)
     assert field_error(data + b"\xc0").field == "<message>"
+
+
+def test_an_episode_recorded_before_conditions_reads_as_the_current_version() -> None:
+    wire = episode_wire()
+    wire["_v"] = 2
+    wire.pop("conditions", None)
+    ep = decode(pack(wire))
+    assert isinstance(ep, Episode) and ep.conditions is None
+    wire["conditions"] = {"randomised": np.array([1])}  # a field version 2 did not have
+    assert field_error(wire).field == "Episode.conditions"

@@ -260,7 +260,7 @@ def test_optional_fields_may_be_absent_or_nil() -> None:
     del wire["detail"]
     assert decode(pack(wire)).detail == ""
     ep = gen_episode(rng, images=False, augmented=False)
-    wire = {"_type": "Episode", "_v": 2, **ep.to_wire()}
+    wire = {"_type": "Episode", "_v": Episode.VERSION, **ep.to_wire()}
     del wire["images"], wire["augmentation"]
     out = decode(pack(wire))
     assert out.images is None and out.augmentation is None
@@ -270,7 +270,7 @@ def test_optional_fields_may_be_absent_or_nil() -> None:
 
 def test_field_order_on_the_wire_does_not_matter() -> None:
     ep = gen_episode(np.random.default_rng(SEED), images=True, augmented=True)
-    wire = {"_type": "Episode", "_v": 2, **ep.to_wire()}
+    wire = {"_type": "Episode", "_v": Episode.VERSION, **ep.to_wire()}
     shuffled = dict(reversed(list(wire.items())))
     assert_same(decode(pack(shuffled)), ep)
 

@@ -416,6 +416,6 @@ def test_schema_and_codec_agree_on_invalid_episode_fields():
         doc = as_json_document(ep)
         doc[field_name] = value
         assert schema_errors(doc, schema), field_name
-        wire = {"_type": "Episode", "_v": 2, **ep.to_wire(), field_name: value}
+        wire = {"_type": "Episode", "_v": Episode.VERSION, **ep.to_wire(), field_name: value}
         with pytest.raises(ProtocolError):
             decode(pack(wire))

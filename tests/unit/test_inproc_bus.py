@@ -7,6 +7,7 @@ import threading
 import pytest
 
 from proto.control import Heartbeat
+from proto.episode import Episode
 from proto.msgpack_wire import ProtocolError, pack
 from proto.topics import ALIVE, EPISODES_AUGMENTED, EPISODES_RAW, STATUS, WEIGHTS_ANNOUNCE, WEIGHTS_LATEST
 from services.common.bus.inproc import Hub, InProcBus, key_matches
@@ -199,7 +200,7 @@ def test_bad_payloads_are_counted_reported_and_skipped(bus, make_episode) -> Non
     good = make_episode(T=3, seed=7)
     wire = good.to_wire()
     wire["actions"] = wire["actions"] * 0 + 2.0  # out of [-1, 1]
-    out_of_range = pack({"_type": "Episode", "_v": 2, **wire})
+    out_of_range = pack({"_type": "Episode", "_v": Episode.VERSION, **wire})
 
     bus.publish(EPISODES_RAW, b"\xc1\xff garbage \x00", source="actor-0")  # not msgpack
     bus.publish(EPISODES_RAW, out_of_range, source="actor-0")

@@ -405,3 +405,35 @@ def test_meas_workspace_is_the_envs_pivot_workspace(env):
     s = MeaDiscreteSettings()
     assert np.allclose(s.pivot_low, low, atol=1e-4) and np.allclose(s.pivot_high, high, atol=1e-4)
     assert s.bound_tolerance <= 5 * env.settings.tolerance
+
+
+def test_each_episode_records_what_it_drew(env):
+    """Episode.conditions: the randomisation switch, the camera offsets and the object, from the seed."""
+    from proto.episode import Episode
+    from services.actor.episodes import EpisodeBuilder
+    from services.actor.rollout import run_episode
+    from services.tasks.surgical.settings import RandomisationSettings
+
+    env.reset(3)
+    plain = env.episode_conditions()
+    assert plain["randomised"].tolist() == [0] and not np.any(plain["camera_offsets"])
+    dr = make_env(
+        "surgical_grasp_any",
+        SurgicalSettings(camera=SMALL, randomisation=RandomisationSettings(enabled=True)),
+    )
+    try:
+        dr.reset(3)
+        drawn = dr.episode_conditions()
+        assert drawn["randomised"].tolist() == [1] and np.any(drawn["camera_offsets"])
+        assert drawn["object_kind"] == plain["object_kind"] and drawn["object_scale"] == plain["object_scale"]
+        dr.reset(4)
+        assert not np.array_equal(dr.episode_conditions()["camera_offsets"], drawn["camera_offsets"])
+        b = EpisodeBuilder(task="surgical_grasp_any", seed=3, actor_id="a-0", policy_version=-1, policy_kind="random",
+                           is_demo=False, segments=dr.segment_names)  # fmt: skip
+        rng = np.random.default_rng(0)
+        run_episode(dr, 3, lambda obs: dr.sample_action(rng), b)
+        ep = Episode.decode(b.finish("a-0-3-0").encode())
+        assert ep.conditions is not None
+        assert np.array_equal(ep.conditions["camera_offsets"], drawn["camera_offsets"])
+    finally:
+        dr.close()

@@ -60,6 +60,7 @@ from proto.discrete_actions import NAMES, to_vector
 from services.observation.dsa import dsa_image, in_cube, voxel_centroid, world_clouds
 from services.tasks.camera import _downsample, sample_fixed
 from services.tasks.env import EnvSettings, Observation
+from services.tasks.surgical import objects
 from services.tasks.surgical.camera import CameraPose, ObliqueCamera, image_noise
 from services.tasks.surgical.control import HybridController, centroid_error, fsm_index, fsm_reward
 from services.tasks.surgical.scene import WORKSPACE, Scene, draw
@@ -127,6 +128,7 @@ class SurgicalGraspEnv:
         self.fsm = "prog_norm"
         self._err: np.ndarray | None = None
         self.camera_pose = CameraPose()
+        self.placement = None
 
     # --- set-up -------------------------------------------------------------------------------
     def _calibrate(self) -> float:
@@ -165,6 +167,7 @@ class SurgicalGraspEnv:
         self.seed, self.t = int(seed), 0
         s = self.settings
         placement = draw(s, np.random.default_rng(self.seed))
+        self.placement = placement
         self.scene.build(placement)
         self.camera_pose = CameraPose()  # the episode's camera offsets (domain randomisation), for the record
         if s.randomisation.enabled:
@@ -177,6 +180,17 @@ class SurgicalGraspEnv:
         world = self._perceive()
         self.controller.reset(self._err)
         return self._observation(world)
+
+    def episode_conditions(self) -> dict[str, np.ndarray]:
+        """What this episode drew besides its seed, for ``Episode.conditions``: whether domain
+        randomisation was on, the camera's offsets, the object's kind and scale."""
+        p, c = self.placement, self.camera_pose
+        return {
+            "randomised": np.array([int(self.settings.randomisation.enabled)], np.int64),
+            "camera_offsets": np.array([c.distance, c.pitch_deg, c.roll_deg, c.yaw_deg], np.float64),
+            "object_kind": np.array([objects.KINDS.index(p.spec.kind)], np.int64),
+            "object_scale": np.array([p.spec.scale], np.float64),
+        }
 
     def _validate(self, action: np.ndarray) -> np.ndarray:
         a = np.asarray(action, dtype=float)
