@@ -4,7 +4,7 @@ The stack is `make run`'s (Block Pull, 2 demos, the mea variant, cpu-small learn
 ``--run-args`` says otherwise, stopped after ``--minutes``. A Zenoh client on the launcher's router
 learns each service's pid from its heartbeats; every ``--sample-seconds`` the RSS of each pid (and of
 the launcher) is read from /proc. The table gives, per service instance, RSS at the end of the
-warm-up and at the end, and the growth between them. The learner's replay arrays are reserved at
+warm-up and at the end (medians over ``--window-minutes``), and the growth between them. The learner's replay arrays are reserved at
 start and their pages touched as they fill, so its growth is also given net of the replay bytes it
 filled in between (from its heartbeats): data kept by design, not a leak. A service that restarts
 starts a new series (its restarts are listed). Sampling stops 5 s before the stack is told to stop:
@@ -23,6 +23,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from services.bench.harness import free_port
 from services.bench.report import emit
@@ -45,6 +47,10 @@ class SoakBenchConfig:
     """Further `mea run` flags (default: `make run`'s stack, stopped by time rather than a budget)."""
     limit_percent: float = 5.0
     """Allowed RSS growth after warm-up."""
+    window_minutes: float = 5.0
+    """RSS after warm-up and at the end are medians over this long (single samples catch transients)."""
+    samples: Path | None = None
+    """Tabulate a finished soak's RUN_DIR/soak-rss.json again instead of running one."""
     json: bool = False
     """Print exactly one JSON object instead of tables."""
 
@@ -77,11 +83,26 @@ class Series:
         return next((s for s in self.samples if s[0] >= t), None)
 
 
-def growth_rows(series: list[Series], warmup: float, limit: float) -> list[dict[str, Any]]:
+def _median_in(
+    samples: list[tuple[float, int, float]], lo: float, hi: float
+) -> tuple[float, float, float] | None:
+    inside = [x for x in samples if lo <= x[0] <= hi]
+    if not inside:
+        return None
+    return (inside[0][0], float(np.median([x[1] for x in inside])), float(np.median([x[2] for x in inside])))
+
+
+def growth_rows(
+    series: list[Series], warmup: float, limit: float, window: float = 300.0
+) -> list[dict[str, Any]]:
+    """Per series: median RSS over the ``window`` s after the warm-up against the median over the
+    last ``window`` s (single samples catch transients: an episode being augmented, a checkpoint)."""
     rows = []
     for s in series:
-        first, last = s.at_or_after(warmup), (s.samples[-1] if s.samples else None)
-        if first is None or last is None or last[0] <= first[0]:
+        end = s.samples[-1][0] if s.samples else 0.0
+        first = _median_in(s.samples, warmup, warmup + window)
+        last = _median_in(s.samples, end - window, end)
+        if first is None or last is None or end - window <= warmup:
             rows.append({"instance": s.name, "pid": s.pid, "RSS after warm-up MB": None, "RSS at end MB": None,
                          "growth %": None, "replay filled MB": None, "growth net of replay %": None,
                          "minutes measured": 0.0, "ok": None})  # fmt: skip  # exited during warm-up
@@ -91,11 +112,28 @@ def growth_rows(series: list[Series], warmup: float, limit: float) -> list[dict[
         rows.append({"instance": s.name, "pid": s.pid, "RSS after warm-up MB": first[1] / 1e6,
                      "RSS at end MB": last[1] / 1e6, "growth %": grow,
                      "replay filled MB": (last[2] - first[2]) / 1e6, "growth net of replay %": net,
-                     "minutes measured": (last[0] - first[0]) / 60, "ok": net < limit})  # fmt: skip
+                     "minutes measured": (end - warmup) / 60, "ok": net < limit})  # fmt: skip
     return rows
 
 
+def from_samples(path: Path) -> list[Series]:
+    """The series a run saved (RUN_DIR/soak-rss.json), to tabulate again."""
+    data = json.loads(Path(path).read_text())
+    return [Series(name.rsplit("@", 1)[0], int(name.rsplit("@", 1)[1]), [tuple(x) for x in v])
+            for name, v in data.items()]  # fmt: skip
+
+
 def run(cfg: SoakBenchConfig) -> dict:
+    if cfg.samples is not None:
+        rows = growth_rows(
+            from_samples(cfg.samples), cfg.warmup_minutes * 60, cfg.limit_percent, cfg.window_minutes * 60
+        )
+        meta = {
+            "samples": str(cfg.samples),
+            "warmup_minutes": cfg.warmup_minutes,
+            "window_minutes": cfg.window_minutes,
+        }
+        return emit("soak", {"RSS growth after warm-up": rows}, measured={}, as_json=cfg.json, meta=meta)
     from proto.topics import STATUS
     from services.bench.system import connect_to_run
 
@@ -141,7 +179,9 @@ def run(cfg: SoakBenchConfig) -> dict:
             os.killpg(proc.pid, signal.SIGTERM)
             proc.wait(120)
         log.close()
-    rows = growth_rows(list(series.values()), cfg.warmup_minutes * 60, cfg.limit_percent)
+    rows = growth_rows(
+        list(series.values()), cfg.warmup_minutes * 60, cfg.limit_percent, cfg.window_minutes * 60
+    )
     (cfg.run_dir / "soak-rss.json").write_text(json.dumps(
         {s.name + f"@{s.pid}": s.samples for s in series.values()}) + "\n")  # fmt: skip
     meta = {"minutes": round((time.monotonic() - t0) / 60, 1), "warmup_minutes": cfg.warmup_minutes,

@@ -35,3 +35,15 @@ def test_a_process_that_ended_during_warm_up_has_no_growth():
 def test_rss_of_this_process_and_of_no_process():
     assert rss_bytes(os.getpid()) > 10 * MB
     assert rss_bytes(2**22 + 12345) is None
+
+
+def test_a_transient_at_either_end_does_not_count_as_growth():
+    """Medians over the windows: one sample caught mid-burst (an augmentation, a checkpoint) is not growth."""
+    steady = [(600 + 10 * k, 330 * MB, 0) for k in range(300)]
+    steady[1] = (610, 369 * MB, 0)  # a burst right after the warm-up
+    steady[-1] = (steady[-1][0], 369 * MB, 0)  # and at the very end
+    rows = growth_rows([Series("augmenter/augmenter-0", 1, steady)], warmup=600, limit=5.0, window=300)
+    assert rows[0]["growth %"] == pytest.approx(0.0) and rows[0]["ok"] is True
+    creeping = [(600 + 10 * k, (330 + k / 10) * MB, 0) for k in range(300)]  # +30 MB over 50 min
+    rows = growth_rows([Series("augmenter/augmenter-0", 1, creeping)], warmup=600, limit=5.0, window=300)
+    assert rows[0]["growth %"] > 5.0 and rows[0]["ok"] is False
