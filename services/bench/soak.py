@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -135,7 +134,7 @@ def run(cfg: SoakBenchConfig) -> dict:
         }
         return emit("soak", {"RSS growth after warm-up": rows}, measured={}, as_json=cfg.json, meta=meta)
     from proto.topics import STATUS
-    from services.bench.system import connect_to_run
+    from services.bench.system import connect_to_run, stop_run
 
     port = free_port()
     cmd = [sys.executable, "-m", "services.cli", "run", *cfg.run_args, "--run-dir", str(cfg.run_dir),
@@ -175,9 +174,7 @@ def run(cfg: SoakBenchConfig) -> dict:
     finally:
         if bus is not None:
             bus.close()
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            proc.wait(120)
+        stop_run(proc, 120.0)
         log.close()
     rows = growth_rows(
         list(series.values()), cfg.warmup_minutes * 60, cfg.limit_percent, cfg.window_minutes * 60

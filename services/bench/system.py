@@ -103,6 +103,19 @@ def connect_to_run(port: int, proc: subprocess.Popen, timeout: float = 60.0):
             time.sleep(0.5)
 
 
+def stop_run(proc: subprocess.Popen, grace: float) -> None:
+    """Stop a `mea run` subprocess started in its own session: SIGTERM to its group (the launcher
+    stops its services), SIGKILL to the group if it is still there after ``grace`` seconds."""
+    if proc.poll() is not None:
+        return
+    os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(grace)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+
+
 class Collector:
     """First and last heartbeat of each instance inside the window; weights creation and loads."""
 
@@ -164,12 +177,7 @@ def bench_stack(cfg: SystemBenchConfig) -> tuple[dict[str, Any], list[dict[str, 
     finally:
         if bus is not None:
             bus.close()
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(60)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+        stop_run(proc, 60.0)
     learner = [w for w in col.last if w[0] == "learner"]
     wait_fraction = None
     if learner:

@@ -95,7 +95,8 @@ class Subscription:
     # transport side -------------------------------------------------------------------------
     def push(self, key_expr: str, payload: bytes) -> None:
         if self._latest:
-            # checked before it may replace the sender's newest: a forgery must not displace a real one
+            # checked before it may replace the sender's newest: a forgery must not displace a real one;
+            # recv checks again, for what arrived before the bus was given its credentials
             if not self._bus.admit(self._topic, key_expr, payload):
                 return
             with self._cond:
