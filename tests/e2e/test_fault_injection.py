@@ -39,7 +39,8 @@ from tests.helpers.learner import learner_episode
 
 pytestmark = pytest.mark.e2e
 ROOT = Path(__file__).resolve().parents[2]
-BUDGET = 400
+BUDGET = 480
+ACTOR_MARGIN = 160  # env steps left for the restarted actor to produce
 OFFSETS = {"launcher": 0, "learner": 1, "augmenter": 2, "evaluator": 3, "actor": 10}
 ROGUE_VERSION = 1_000_000
 
@@ -89,16 +90,25 @@ class Faults:
         self.actor_versions: list[int] = []
         self.pids: dict[str, list[int]] = {"actor": [], "augmenter": []}
         self.counts: dict[str, dict] = {}
+        self.learner_steps = self.steps_at_actor_kill = 0
         self.injected_at = self.stopped_at = self.killed_at = self.restarted_at = self.actor_killed_at = None
 
     def beat(self, hb) -> None:
         if hb.service == "actor":
             self.actor_versions.append(hb.policy_version)
+        if hb.service == "learner":
+            self.learner_steps = int(hb.counters.get("env_steps", 0))
         pids = self.pids.get(hb.service)
         if pids is not None and hb.pid not in pids:
             pids.append(hb.pid)
             if hb.service == "augmenter" and self.killed_at is not None and self.restarted_at is None:
                 self.restarted_at = time.time()
+
+    def _actor_kill_due(self, now: float) -> bool:
+        """Once the resends after the augmenter's restart went out, and while enough of the budget
+        is left that the restarted actor must run (and report in) before the run can end."""
+        settled = now > self.restarted_at + 8
+        return settled and (now > self.restarted_at + 15 or self.learner_steps >= BUDGET - ACTOR_MARGIN)
 
     def step(self, fresh: list[str], now: float) -> None:
         self.published += [(eid, now) for eid in fresh]
@@ -113,9 +123,9 @@ class Faults:
         elif self.stopped_at is not None and self.killed_at is None and fresh and now > self.stopped_at + 0.5:
             os.kill(self.pids["augmenter"][-1], signal.SIGKILL)
             self.killed_at = now
-        elif self.restarted_at is not None and self.actor_killed_at is None and now > self.restarted_at + 15:
+        elif self.restarted_at is not None and self.actor_killed_at is None and self._actor_kill_due(now):
             os.kill(self.pids["actor"][-1], signal.SIGKILL)  # restarted too; training goes on
-            self.actor_killed_at = now
+            self.actor_killed_at, self.steps_at_actor_kill = now, self.learner_steps
 
 
 @pytest.mark.timeout(420)
@@ -161,6 +171,7 @@ def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["instances"]["augmenter-0"]["restarts"] == 1, summary
     assert f.actor_killed_at is not None and summary["instances"]["actor-0"]["restarts"] == 1, summary
+    assert f.steps_at_actor_kill <= BUDGET - ACTOR_MARGIN // 2, f.steps_at_actor_kill
     assert len(f.pids["actor"]) == 2  # the restarted actor reported in
     learner = summary["instances"]["learner-0"]["counters"]
     assert BUDGET <= learner["env_steps"] < 10**6  # the real budget ended the run, not a forged heartbeat
@@ -184,6 +195,6 @@ def test_forgeries_are_refused_and_a_killed_augmenter_loses_no_episode(tmp_path)
         str(e) for e, s in zip(replay["episode_id"], replay["source_episode_id"], strict=True) if e == s
     )
     assert all(n == 1 for n in stored.values())
-    settled = {eid for eid, at in f.published if at < f.restarted_at + 10}
+    settled = {eid for eid, at in f.published if at < f.restarted_at + 8}
     assert settled and settled <= set(stored), sorted(settled - set(stored))
     assert not any(eid.startswith("rogue") for eid in stored)
