@@ -18,6 +18,9 @@ from proto.msgpack_wire import ProtocolError
 from proto.specs import ID_PATTERN, Arr, Bool, Float, Int, ListOf, MapOf, Nested, Opt, Str, spec
 
 TASKS = ("block_pull", "block_pick", "drawer_open", "surgical_grasp_any")
+DSA_TASKS = ("surgical_grasp_any",)
+"""Tasks whose episodes carry the env's DSA image (``images``: uint8 (T+1, 3, 64, 64)) as the policy's
+observation, and no voxel or depth input (``services.observation.dsa``)."""
 POLICY_KINDS = ("expert_probe", "expert_direct", "random", "learned")
 AUGMENTATION_KINDS = ("isometric", "mea", "mea+isometric")
 OBJECT_SYMMETRY = {"block_pull": 4, "block_pick": 4, "drawer_open": 1, "surgical_grasp_any": 1}

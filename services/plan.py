@@ -20,7 +20,7 @@ from services.common.config import ServiceConfig
 from services.common.metrics import DEFAULT_PORTS
 from services.evaluator.config import EvaluatorConfig
 from services.learner.config import PRESETS as LEARNER_PRESETS
-from services.run_config import SERVICE_MODULES, SERVICE_ORDER, RunConfig
+from services.run_config import GASV2_PRESETS, SERVICE_MODULES, SERVICE_ORDER, RunConfig
 from services.variants import network_group, variant
 
 
@@ -72,7 +72,7 @@ def actor_config(run: RunConfig, index: int, service: ServiceConfig) -> ActorCon
         index=index,
         policy="learned" if "learner" in run.services else "random",
         seed_base=actor_seed_base(run.seed, run.resumes),
-        demos=run.demos if index == 0 and run.resume is None else 0,
+        demos=run.resolved_demos() if index == 0 and run.resume is None else 0,
         depth_image=variant(run.variant).depth_image,
         follow_gate=run.follow_gate,
         service=service,
@@ -89,19 +89,39 @@ def augmenter_config(run: RunConfig, service: ServiceConfig) -> AugmenterConfig:
         seed=run.seed,
         success_isometric_copies=run.resolved_success_rotations(),
         mea_on=run.resolved_mea_on() if v.mea else "none",
-        observation=v.observation,
+        # the discrete-action tasks' copies are re-rendered by the task's own pipeline (dsa)
+        observation=base.observation if v.observation == "dsa" else v.observation,
     )
     return AugmenterConfig(augment=augment, service=service)
 
 
+def learner_preset(run: RunConfig) -> str:
+    """The learner preset of the run: ``learner_preset`` itself for the Equi-RSAC variants, its GASv2
+    counterpart (``GASV2_PRESETS``) for the GASv2 ones; ValueError naming the choices otherwise."""
+    gasv2 = variant(run.variant).algorithm == "gasv2"
+    name = GASV2_PRESETS.get(run.learner_preset, "") if gasv2 else run.learner_preset
+    if name not in LEARNER_PRESETS or (not gasv2 and name.startswith("gasv2")):
+        choices = (
+            sorted(GASV2_PRESETS)
+            if gasv2
+            else sorted(k for k in LEARNER_PRESETS if not k.startswith("gasv2"))
+        )
+        raise ValueError(f"learner preset {run.learner_preset!r} has no {variant(run.variant).algorithm} "
+                         f"learner; choose one of {choices}")  # fmt: skip
+    return name
+
+
 def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any:
-    """The run's learner preset with the task's group, the variant's observation, the run's budget
-    and seed, one torch thread (it shares the cores with actors and augmenter; two OpenMP threads on
-    a busy 2-core machine wait on each other), state under RUN_DIR/learner, resumed on --resume."""
-    preset = LEARNER_PRESETS[run.learner_preset]
+    """The run's learner preset (``learner_preset``) with the task's group, the variant's
+    observation, the run's budget and seed, one torch thread (it shares the cores with actors and
+    augmenter; two OpenMP threads on a busy 2-core machine wait on each other), state under
+    RUN_DIR/learner, resumed on --resume."""
+    preset = LEARNER_PRESETS[learner_preset(run)]
     return dataclasses.replace(
         preset,
-        net=dataclasses.replace(preset.net, group=network_group(run.task)),
+        net=dataclasses.replace(preset.net, group=network_group(run.task))
+        if preset.algorithm != "gasv2"
+        else preset.net,
         observation=variant(run.variant).observation,
         threads=1,
         max_env_steps=run.env_steps,

@@ -8,7 +8,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.variants import VARIANTS
+from proto.episode import DSA_TASKS
+from services.variants import VARIANTS, check_task
 
 SERVICE_ORDER = ("learner", "augmenter", "evaluator", "actor")
 SERVICE_MODULES = {s: f"services.{s}.main" for s in SERVICE_ORDER}
@@ -16,6 +17,8 @@ SERVICE_MODULES = {s: f"services.{s}.main" for s in SERVICE_ORDER}
 
 
 MEA_ON = ("", "demos", "successes", "all")
+GASV2_PRESETS = {"paper": "gasv2", "cpu-small": "gasv2-cpu-small", "smoke": "gasv2-smoke"}
+"""The GASv2 learner preset a run's ``learner_preset`` stands for with a GASv2 variant."""
 CPU_LEARNER_PRESETS = ("cpu-small", "cpu-small-state")
 """Learner presets for two CPU cores: MEA on online successes too, 64 rotated copies of successes."""
 
@@ -25,13 +28,14 @@ class RunConfig:
     """Run the full training stack locally."""
 
     task: str = "block_pull"
-    """Task: block_pull, block_pick or drawer_open."""
+    """Task: block_pull, block_pick, drawer_open or surgical_grasp_any."""
     variant: str = "mea"
-    """What the paper compares: equirsac (rendered depth image, isometric x4), equiobs (voxel
-    projection, isometric x4), mea (voxel projection, isometric x4 + MEA x6 on the demos, and with the
-    cpu-small learner on online successes too: see mea_on)."""
+    """What the paper compares. General manipulation (Equi-RSAC learner): equirsac (rendered depth
+    image, isometric x4), equiobs (voxel projection, isometric x4), mea (voxel projection, isometric x4
+    + MEA x6 on the demos, and with the cpu-small learner on online successes too: see mea_on).
+    surgical_grasp_any (GASv2 learner): gasv2 (DSA image) or mea-gasv2 (+ MEA x200, as mea_on says)."""
     mea_on: str = ""
-    """mea variant only: which episodes get MEA (demos: the paper; successes: the demos and every online
+    """mea and mea-gasv2 variants only: which episodes get MEA (demos: the paper; successes: the demos and every online
     success; all). Empty: successes with the cpu-small learner preset, demos with the others."""
     env_steps: int = 40_000
     """Env-step budget (the paper: 40K, demos included); the run stops after the evaluation at the
@@ -67,8 +71,9 @@ class RunConfig:
     """How many times the run was resumed (set by --resume; moves the actors' seed streams on)."""
     actors: int = 1
     """Number of actor processes."""
-    demos: int = 2
-    """Scripted demonstrations pre-filled before training."""
+    demos: int | None = None
+    """Scripted demonstrations pre-filled before training; None: the paper's setting for the task
+    (2 for the general manipulation tasks, 10 for surgical_grasp_any)."""
     run_dir: Path | None = None
     """Run directory (config, checkpoints, eval history, recordings); default runs/<time>-<task>-<variant>."""
     listen: str = "tcp/127.0.0.1:7447"
@@ -123,6 +128,12 @@ class RunConfig:
             return self.success_rotations
         return 64 if self.learner_preset in CPU_LEARNER_PRESETS else 0
 
+    def resolved_demos(self) -> int:
+        """``demos``, else the paper's: 10 on surgical_grasp_any (Sec. VI), 2 on the general tasks."""
+        if self.demos is not None:
+            return self.demos
+        return 10 if self.task in DSA_TASKS else 2
+
     def resolved_mea_on(self) -> str:
         """What the mea variant runs MEA on: ``mea_on``, else the learner preset's default (the CPU
         recipe adds online successes: beyond the two demos, they are the only other layouts)."""
@@ -141,8 +152,14 @@ class RunConfig:
             raise ValueError(f"variant must be one of {tuple(VARIANTS)}, not {self.variant!r}")
         if self.mea_on not in MEA_ON:
             raise ValueError(f"mea_on must be one of {MEA_ON[1:]}, not {self.mea_on!r}")
-        if self.mea_on and self.variant != "mea":
-            raise ValueError("--mea-on applies to --variant mea only")
+        if self.mea_on and not VARIANTS[self.variant].mea:
+            raise ValueError("--mea-on applies to --variant mea and mea-gasv2 only")
+        check_task(self.variant, self.task)
+        if VARIANTS[self.variant].algorithm == "gasv2" and self.learner_preset not in GASV2_PRESETS:
+            raise ValueError(f"learner preset {self.learner_preset!r} has no gasv2 learner; choose one of "
+                             f"{sorted(GASV2_PRESETS)}")  # fmt: skip
+        if self.demos is not None and self.demos < 0:
+            raise ValueError("demos must be >= 0")
         if self.env_steps < 0 or min(self.eval_every, self.eval_episodes, self.final_eval_episodes) < 1:
             raise ValueError("env_steps must be >= 0, eval_every, eval_episodes and final_eval_episodes >= 1")
         unknown = set(self.services) - set(SERVICE_ORDER)

@@ -138,16 +138,21 @@ class Delivery:
         self.watch.close()
 
 
-def _load_weights(weights: WeightsClient, policy, mx, counts: dict, depth_image: bool = False) -> None:
+def _load_weights(
+    weights: WeightsClient, policy, mx, counts: dict, depth_image: bool = False, task: str = ""
+) -> None:
     """Pull a newer version if one was announced; a blob that does not fit, or that wants the depth
     image from an actor that does not render it, is counted and skipped (the old weights stay)."""
     blob = weights.poll()
     if blob is None:
         return
     try:
-        from services.learner.core.policy import PolicySpec, check_observation  # torch: learned actors only
+        from services.learner.core.policy import (
+            blob_observation,
+            check_observation,
+        )  # torch: learned actors only
 
-        check_observation(PolicySpec.from_json(blob.config_json).observation, depth_image, "an actor")
+        check_observation(blob_observation(blob), depth_image, "an actor", task)
         policy.load(blob)  # only after the check: refused weights must not replace the ones acting
     except ValueError as exc:
         mx["bad_weights"].inc()
@@ -208,7 +213,7 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
             if gate is not None:
                 mx["gate_wait"].inc(gate.wait(ctx.shutdown, delivery.tend))
             if weights is not None:
-                _load_weights(weights, policy, mx, counts, cfg.depth_image)
+                _load_weights(weights, policy, mx, counts, cfg.depth_image, cfg.task)
                 if not policy.ready:  # no weights yet: wait for the learner's first version
                     ctx.shutdown.wait(0.2)
                     continue

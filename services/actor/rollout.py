@@ -23,7 +23,8 @@ def policy_image(obs: Observation) -> np.ndarray:
 
 
 def policy_input(obs: Observation, observation: str) -> np.ndarray:
-    """The learned policy's input for ``observation`` ("voxel" or "depth"), uint8 (2, 84, 84).
+    """The learned policy's input for ``observation`` ("voxel" or "depth": uint8 (2, 84, 84); "dsa":
+    the env's own DSA image, uint8 (3, 64, 64)).
 
     ``voxel``: ``policy_image(obs)``. ``depth``: the rendered depth image's codes + jaw
     (``services.observation.depth_image.policy_images``), taken through float16 first, as the
@@ -32,8 +33,12 @@ def policy_input(obs: Observation, observation: str) -> np.ndarray:
     """
     if observation == "voxel":
         return policy_image(obs)
+    if observation == "dsa":
+        if obs.image is None:
+            raise ValueError("a DSA policy needs a task whose env renders the DSA image (surgical_grasp_any)")
+        return obs.image
     if observation != "depth":
-        raise ValueError(f"observation must be voxel or depth, not {observation!r}")
+        raise ValueError(f"observation must be voxel, depth or dsa, not {observation!r}")
     if obs.depth_image is None:
         raise ValueError("a depth policy needs the rendered depth image: start the actor with --depth-image")
     depth = np.asarray(obs.depth_image).astype(np.float16)[None]
@@ -41,12 +46,14 @@ def policy_input(obs: Observation, observation: str) -> np.ndarray:
 
 
 def run_episode(
-    env: ManipulationEnv, seed: int, act, builder: EpisodeBuilder, on_step=None
+    env: ManipulationEnv, seed: int, act, builder: EpisodeBuilder, on_step=None, executed=None
 ) -> EpisodeBuilder:
     """Roll out one episode with ``act(obs) -> action``; ``on_step(seconds)`` sees each step's time.
 
     The episode records the action the env reports as executed (``info['executed_action']``) where it
-    reports one: in ``surgical_grasp_any`` the hybrid controller's approach replaces the policy's."""
+    reports one: in ``surgical_grasp_any`` the hybrid controller's approach replaces the policy's.
+    ``executed(action)``, if given, is told that action after every step (a policy whose state
+    follows what was executed: ``PolicyRuntime.executed``)."""
     obs = env.reset(seed)
     builder.meta["fixed_object"] = env.task.fixed_index()  # privileged, for the learner's critic
     conditions = getattr(env, "episode_conditions", None)  # what the env drew besides the seed
@@ -60,7 +67,10 @@ def run_episode(
         if on_step is not None:
             on_step(time.perf_counter() - t0)
         builder.observe(obs)
-        builder.step(info.get("executed_action", action), reward, terminated, truncated)
+        done = info.get("executed_action", action)
+        if executed is not None:
+            executed(done)
+        builder.step(done, reward, terminated, truncated)
         if terminated or truncated:
             break
     return builder
@@ -112,7 +122,8 @@ class Actor:
         policy.reset()
         observation = policy.spec.observation
         return run_episode(self.env, seed, lambda o: policy.act(policy_input(o, observation)),
-                           self.builder(seed, "learned", policy.version, False), on_step)  # fmt: skip
+                           self.builder(seed, "learned", policy.version, False), on_step,
+                           getattr(policy, "executed", None))  # fmt: skip
 
     def policy_episode(self, k: int, policy=None, on_step=None) -> EpisodeBuilder:
         """Episode k after the demonstrations, with the configured policy source."""

@@ -74,11 +74,19 @@ class LearnerBenchConfig:
     """Weights versions published per latency measurement."""
     latency_presets: tuple[str, ...] = ("paper", "cpu-small")
     """Presets whose actor weights are timed from publish to loaded."""
+    gasv2_presets: tuple[str, ...] = ("gasv2", "gasv2-cpu-small")
+    """GASv2 learner presets to time (world model + imagination update on windows of DSA images)."""
+    gasv2_episodes: int = 64
+    """Random 40-step surgical episodes in the GASv2 benchmark replay."""
     seed: int = 0
     json: bool = False
     """Print exactly one JSON object instead of tables."""
 
     def __post_init__(self) -> None:
+        for p in self.gasv2_presets:
+            if LEARNER_PRESETS.get(p, LEARNER_PRESETS["paper"]).algorithm != "gasv2":
+                gasv2 = sorted(k for k, v in LEARNER_PRESETS.items() if v.algorithm == "gasv2")
+                raise ValueError(f"--gasv2-presets: {p!r} is not a GASv2 preset; choose from {gasv2}")
         for v in self.variants:
             try:
                 variant_net(v)
@@ -164,6 +172,97 @@ def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
             "s/update (median)": per_update, "s/update (min)": min(update_s), "updates/s": 1.0 / per_update,
             "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),
         })  # fmt: skip
+    return rows
+
+
+SURGICAL_STEPS, APPROACH_STEPS = 40, 12
+"""Length of the GASv2 benchmark's episodes and of their hybrid-controller approach."""
+
+
+def random_dsa_episode(
+    rng: np.random.Generator, k: int, T: int = SURGICAL_STEPS, is_demo: bool = False
+) -> Episode:
+    """A raw surgical-like episode: random DSA codes with valid state rows (the controller drives the
+    first ``APPROACH_STEPS`` steps with continuous actions, then discrete actions), a success at the end."""
+    from proto.discrete_actions import to_vector
+    from services.observation.dsa import SURGICAL_GRASP_ANY, dsa_image_from_voxels
+
+    empty = np.zeros((0, 3), np.int64)
+    rows = {c: dsa_image_from_voxels(empty, empty, SURGICAL_GRASP_ANY, gripper_state=0, fsm_state=0,
+                                     controller_state=c)[2, -1] for c in (0, 1)}  # fmt: skip
+    images = rng.integers(0, 256, (T + 1, 3, 64, 64), dtype=np.uint8)
+    controller = np.arange(T + 1) < APPROACH_STEPS
+    images[:, 2, -1] = np.where(controller[:, None], rows[1], rows[0])
+    actions = np.stack([np.r_[1.0, rng.uniform(-1, 1, 3), 0.0] if t < APPROACH_STEPS
+                        else to_vector(int(rng.integers(0, 8)), True) for t in range(T)]).astype(np.float32)  # fmt: skip
+    rewards = np.full(T, -0.001, np.float32)
+    rewards[-1] = 1.0
+    ends = np.zeros(T, bool)
+    ends[-1] = True
+    return Episode(
+        episode_id=f"bench-{k}", task="surgical_grasp_any", seed=k, actor_id="bench", policy_version=-1,
+        policy_kind="expert_direct" if is_demo else "random", is_demo=is_demo, created_at=1.0,
+        segments=["gripper", "object_0"], points=np.zeros((T + 1, 2, 4, 3), np.float32),
+        point_counts=np.full((T + 1, 2), 4, np.int32), jaw=np.ones(T + 1, np.float32), actions=actions,
+        rewards=rewards, terminated=ends, truncated=np.zeros(T, bool),
+        gripper_pose=np.zeros((T + 1, 4), np.float32), object_poses=np.zeros((T + 1, 1, 7), np.float32),
+        contacts=np.zeros((T + 1, 1), bool), images=images,
+    )  # fmt: skip
+
+
+def bench_gasv2_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
+    """Each GASv2 preset's real update: ``batch_size`` windows of ``chunk_length`` drawn as the preset
+    draws them (demo share), the world-model step, then imagination (horizon 15) and actor/critic steps."""
+    from services.learner.core.gasv2.agent import GasV2Agent
+    from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
+
+    rng = np.random.default_rng(cfg.seed)
+    replay = ChunkReplay(cfg.gasv2_episodes * SURGICAL_STEPS, seed=cfg.seed)
+    for k in range(cfg.gasv2_episodes):
+        replay.insert_episode(random_dsa_episode(rng, k, is_demo=k < cfg.gasv2_episodes // 4))
+    rows = []
+    for preset in cfg.gasv2_presets:
+        lc = LEARNER_PRESETS[preset]
+        torch.manual_seed(cfg.seed)
+        agent = GasV2Agent(lc.dreamer, seed=cfg.seed)
+        sample_s, update_s = [], []
+        for i in range(cfg.updates + 1):
+            t0 = time.perf_counter()
+            sample = replay.sample_chunks(lc.batch_size, lc.chunk_length, rng, demo_fraction=lc.demo_fraction)
+            batch = to_chunk_batch(sample)
+            t1 = time.perf_counter()
+            agent.update(batch)
+            t2 = time.perf_counter()
+            if i:
+                sample_s.append(t1 - t0)
+                update_s.append(t2 - t0)
+        per_update = statistics.median(update_s)
+        _log(f"{preset}: {per_update:.3f} s/update")
+        d = lc.dreamer
+        rows.append({
+            "preset": preset, "batch (windows x length)": f"{lc.batch_size} x {lc.chunk_length}",
+            "deter / hidden": f"{d.deter} / {d.hidden}", "latent": f"{d.stoch} x {d.classes}", "cnn depth": d.cnn_depth,
+            "params (all)": sum(p.numel() for m in (agent.world_model, agent.actor, agent.critic) for p in m.parameters()),
+            "params (published)": sum(v.numel() for v in agent.policy.state_dict().values()),
+            "s/update (median)": per_update, "s/update (min)": min(update_s), "updates/s": 1.0 / per_update,
+            "env steps/s it keeps up with": lc.samples_per_insert and 1.0 / (per_update * lc.samples_per_insert),
+            "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),
+        })  # fmt: skip
+    return rows
+
+
+def bench_gasv2_replay(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
+    """Bytes the GASv2 presets' window replays reserve (uint8 DSA rows stored once per observation),
+    against float32 observations stored per transition with their next observation."""
+    from services.learner.core.gasv2.chunk_replay import ChunkReplay
+
+    rows = []
+    for preset in cfg.gasv2_presets:
+        lc = LEARNER_PRESETS[preset]
+        ours = ChunkReplay.reserved_bytes(lc.replay_capacity, seq_len=lc.seq_len)
+        naive = public_reference_bytes(lc.replay_capacity, image_size=64, channels=3)
+        rows.append({"preset": preset, "capacity (transitions)": lc.replay_capacity, "ours bytes": ours,
+                     "float32 obs + next_obs bytes": naive, "ratio": naive / ours})  # fmt: skip
     return rows
 
 
@@ -281,6 +380,9 @@ def run(cfg: LearnerBenchConfig) -> dict:
         torch.set_num_threads(cfg.threads)
     started = time.monotonic()
     sections = {"gradient updates": bench_updates(cfg), "replay memory": bench_replay()}
+    if cfg.gasv2_presets:
+        sections["gasv2 updates (Surgical Grasp Any windows)"] = bench_gasv2_updates(cfg)
+        sections["gasv2 replay memory"] = bench_gasv2_replay(cfg)
     sections["weights publish -> loaded by consumers"] = bench_weights(cfg) if cfg.consumers > 0 else []
     paper = next((r for r in sections["gradient updates"] if r["variant"] in ("paper:c4", "paper")), None)
     threads = torch.get_num_threads()

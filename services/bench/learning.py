@@ -55,7 +55,20 @@ VARIANTS = {
     "equiobs": ["--variant", "equiobs"],
     "mea": ["--variant", "mea"],
     "mea-all": ["--variant", "mea", "--mea-on", "all"],
+    "gasv2": ["--variant", "gasv2"],
+    "mea-gasv2": ["--variant", "mea-gasv2"],
 }
+TASK_VARIANTS = {"surgical_grasp_any": ("gasv2", "mea-gasv2")}
+"""The comparison run on a task where it is not the general manipulation one (``VARIANTS``' first three)."""
+SURGICAL_PRESETS: dict[str, dict[str, Any]] = {
+    "cpu-small": {"env_steps": 8_000, "seeds": 1, "eval_every": 2_000, "eval_episodes": 20,
+                  "final_eval_episodes": 20, "demos": 10},
+    "paper": {"env_steps": 420_000, "seeds": 3, "eval_every": 10_000, "eval_episodes": 20,
+              "final_eval_episodes": 20, "demos": 10},
+}  # fmt: skip
+"""Surgical Grasp Any's settings per preset (the learner preset as ``PRESETS``). paper: the paper's
+Sec. VI (10 demos, 420K env steps, 20 evaluation rollouts every 10K, 3 seeds). cpu-small: the budget
+two runs fit in about two hours on two CPU cores (README, "Surgical Grasp Any")."""
 
 PUBLIC_TRAINING_ENV_STEPS_PER_SECOND = (0.065, 1.0 / PUBLIC_UPDATE_SECONDS)
 """The public Equi-RSAC training loop on a 2-core CPU, env steps/s: one 11.1 s update per env step
@@ -73,15 +86,16 @@ class LearningBenchConfig:
     """cpu-small (20K steps, 1 seed, `mea run`'s learner; 2 CPU cores) or paper (40K steps, 4 seeds,
     paper learner; GPU)."""
     task: str = "block_pull"
-    """Task: block_pull, block_pick or drawer_open."""
-    variants: tuple[str, ...] = ("equirsac", "equiobs", "mea")
-    """Variants to train (add mea-all for MEA on every episode, beyond the paper)."""
+    """Task: block_pull, block_pick, drawer_open or surgical_grasp_any."""
+    variants: tuple[str, ...] = ()
+    """Variants to train; empty: the paper's comparison for the task (equirsac, equiobs, mea; on
+    surgical_grasp_any gasv2, mea-gasv2). Add mea-all for MEA on every episode, beyond the paper."""
     seeds: int = 0
     """Seeds per variant (0: the preset's)."""
     env_steps: int = 0
     """Env-step budget per run (0: the preset's)."""
-    demos: int = 2
-    """Demonstrations per run (the paper and `make run`: 2)."""
+    demos: int = 0
+    """Demonstrations per run (0: the paper's, 2 and `make run`'s; 10 on surgical_grasp_any)."""
     actors: int = 1
     """Actor processes per run."""
     eval_every: int = 0
@@ -115,6 +129,8 @@ class Settings:
 
     budget: int
     seeds: int
+    variants: tuple[str, ...]
+    demos: int
     learner: str | None
     eval_every: int
     eval_episodes: int
@@ -129,10 +145,22 @@ def settings(cfg: LearningBenchConfig) -> Settings:
         raise SystemExit(
             f"mea bench learning: unknown variants {sorted(unknown)} (choose from {sorted(VARIANTS)})"
         )
-    p = PRESETS[cfg.preset]
+    variants = cfg.variants or TASK_VARIANTS.get(cfg.task, ("equirsac", "equiobs", "mea"))
+    from services.variants import check_task
+
+    for v in variants:
+        try:
+            check_task(VARIANTS[v][1], cfg.task)
+        except ValueError as exc:
+            raise SystemExit(f"mea bench learning: {exc}") from None
+    p = dict(PRESETS[cfg.preset])
+    if cfg.task in TASK_VARIANTS:
+        p.update(SURGICAL_PRESETS[cfg.preset])
     return Settings(
         budget=cfg.env_steps or p["env_steps"],
         seeds=cfg.seeds or p["seeds"],
+        variants=tuple(variants),
+        demos=cfg.demos or p.get("demos", 2),
         learner=p["learner"],
         eval_every=cfg.eval_every or p["eval_every"],
         eval_episodes=cfg.eval_episodes or p["eval_episodes"],
@@ -168,7 +196,7 @@ def finished(run_dir: Path, budget: int) -> bool:
 def run_args(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> list[str]:
     """`mea run` arguments of a new run: `make run`'s recipe plus this run's variant, seed, budget and
     evaluation settings; the learner preset only where the benchmark's preset names one."""
-    args = ["--task", cfg.task, "--demos", str(cfg.demos), *VARIANTS[variant], "--seed", str(seed),
+    args = ["--task", cfg.task, "--demos", str(s.demos), *VARIANTS[variant], "--seed", str(seed),
             "--actors", str(cfg.actors), "--env-steps", str(s.budget), "--eval-every", str(s.eval_every),
             "--eval-episodes", str(s.eval_episodes), "--final-eval-episodes", str(s.final_eval_episodes)]  # fmt: skip
     if s.learner is not None:
@@ -262,6 +290,7 @@ def run_row(variant: str, run_dir: Path, budget: int) -> dict[str, Any]:
     return {
         "run": run_dir.name, "variant": variant, "evaluations": int(steps.size),
         "success at budget": None if at is None else float(at["success_rate"]),
+        "grasp score at budget": None if at is None or at.get("grasp_score") is None else float(at["grasp_score"]),
         "episodes at budget": None if at is None else at.get("episodes"),
         "AUC": success_auc(steps, success), "improvement timestep": improvement_timestep(steps, success),
         "last eval at (env steps)": last, "wall (min)": None if wall is None else wall / 60,
@@ -295,6 +324,7 @@ def summarize(
     lo, hi = PUBLIC_TRAINING_ENV_STEPS_PER_SECOND
     for variant, rows in per_run.items():
         at_budget = [r["success at budget"] for r in rows if r["success at budget"] is not None]
+        scores = [r["grasp score at budget"] for r in rows if r["grasp score at budget"] is not None]
         aucs = [r["AUC"] for r in rows if r["AUC"] is not None]
         improved = [r["improvement timestep"] for r in rows if r["improvement timestep"] is not None]
         walls = [r["wall (min)"] for r in rows if r["wall (min)"] is not None]
@@ -305,6 +335,7 @@ def summarize(
         comparison.append({
             "variant": variant, "seeds": len(rows), "seeds at budget": len(at_budget),
             "success at budget (mean)": success_mean, "success at budget (std)": success_std,
+            "grasp score at budget (mean)": _mean_std(scores)[0],
             "AUC (mean)": auc_mean, "AUC (std)": auc_std,
             "improvement timestep (mean over seeds)": float(np.mean(improved)) if improved else None,
             "seeds improved": len(improved),
@@ -320,22 +351,21 @@ def summarize(
             "env steps/s (whole stack, wall)": rate, "public training loop (env steps/s)": f"{lo:g}-{hi:.2g}",
             "ratio (vs the faster public end)": None if rate is None else rate / hi,
         })  # fmt: skip
-    return {
-        "comparison": comparison,
-        "runs": [r for rows in per_run.values() for r in rows],
-        "training loop against the public Equi-RSAC code": loop,
-    }
+    out = {"comparison": comparison, "runs": [r for rows in per_run.values() for r in rows]}
+    if task not in TASK_VARIANTS:  # the public anchor is Equi-RSAC's training loop
+        out["training loop against the public Equi-RSAC code"] = loop
+    return out
 
 
 def run(cfg: LearningBenchConfig) -> dict:
     s = settings(cfg)
-    for variant in cfg.variants:  # before training anything: no run directory with other settings
+    for variant in s.variants:  # before training anything: no run directory with other settings
         for seed in range(s.seeds):
             check_existing(cfg, variant, seed, s)
     started = time.monotonic()
     cfg.out.mkdir(parents=True, exist_ok=True)
     runs: dict[str, list[Path]] = {}
-    for variant in cfg.variants:
+    for variant in s.variants:
         for seed in range(s.seeds):
             runs.setdefault(variant, []).append(train(cfg, variant, seed, s))
     png = cfg.out / f"curves-{cfg.task}.png"
@@ -343,7 +373,7 @@ def run(cfg: LearningBenchConfig) -> dict:
 
     learner = s.learner or f"{RunConfig().learner_preset} (mea run's default)"
     sections = summarize(cfg.task, runs, s.budget, png, learner)
-    meta = {"preset": cfg.preset, "task": cfg.task, "budget": s.budget, "seeds": s.seeds, "demos": cfg.demos,
+    meta = {"preset": cfg.preset, "task": cfg.task, "budget": s.budget, "seeds": s.seeds, "demos": s.demos,
             "learner": learner, "eval_every": s.eval_every, "eval_episodes": s.eval_episodes,
             "final_eval_episodes": s.final_eval_episodes, "curves_png": str(png), "out": str(cfg.out),
             "minutes": round((time.monotonic() - started) / 60, 1)}  # fmt: skip

@@ -95,7 +95,7 @@ class EpisodeRunner:
                                      policy_version=runtime.version, policy_kind="eval", is_demo=False,
                                      segments=self.env.segment_names)  # fmt: skip
             b = run_episode(self.env, seed, lambda o: runtime.act(policy_input(o, observation)), builder,
-                            self.keep_up)  # fmt: skip
+                            self.keep_up, getattr(runtime, "executed", None))  # fmt: skip
             if self.on_episode is not None:
                 self.on_episode(time.perf_counter() - t0)
             results.append(episode_result(b.rewards, b.terminated, seed))

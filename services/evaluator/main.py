@@ -138,7 +138,8 @@ class Evaluator:
             self._bad(blob, "load", str(exc))
             return None
         try:
-            check_observation(runtime.spec.observation, self.env.settings.depth_image, "an evaluator")
+            depth_image = getattr(self.env.settings, "depth_image", False)  # the surgical env renders none
+            check_observation(runtime.spec.observation, depth_image, "an evaluator", self.cfg.task)
         except ObservationUnavailableError as exc:
             self._bad(blob, "observation", str(exc))
             return None

@@ -277,7 +277,7 @@ def save_trainer(
         "config": config,
         "saved_at": time.time(),
     }
-    learner = {"sac": trainer.sac.state_dict(), "rng": rng_state(trainer.rng)}
+    learner = {"sac": trainer.agent.state_dict(), "rng": rng_state(trainer.rng)}  # "sac": any agent
     replay = trainer.replay.state_dict()
     return save(directory, learner=learner, replay=replay, meta=meta, keep=keep, max_bytes=max_bytes)
 
@@ -285,7 +285,7 @@ def save_trainer(
 def restore_trainer(directory: Path, trainer: Trainer) -> Lineage:
     """Load the checkpoint in ``directory`` into ``trainer``; returns the lineage it continues."""
     learner, replay, meta = load(directory)
-    trainer.sac.load_state_dict(learner["sac"])
+    trainer.agent.load_state_dict(learner["sac"])
     restore_rng(learner["rng"], trainer.rng)
     trainer.replay.load_state_dict(replay)
     trainer.limiter.load_state_dict(meta["limiter"])

@@ -18,6 +18,11 @@ import numpy as np
 import torch
 
 from services.common.config import ServiceConfig
+from services.learner.core.gasv2.agent import GasV2Agent
+from services.learner.core.gasv2.chunk_replay import ChunkReplay
+from services.learner.core.gasv2.config import PRESETS as DREAMER_PRESETS
+from services.learner.core.gasv2.config import DreamerConfig
+from services.learner.core.gasv2.trainer import GasV2Trainer
 from services.learner.core.networks import PRESETS as NET_PRESETS
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import OBSERVATIONS
@@ -27,7 +32,7 @@ from services.learner.core.replay import SequenceReplay
 from services.learner.core.sac import RecurrentSAC, SacSettings
 from services.learner.core.trainer import Trainer, TrainerSettings
 
-ALGORITHMS = ("equi_rsac", "rsac")
+ALGORITHMS = ("equi_rsac", "rsac", "gasv2")
 
 
 @dataclass(frozen=True)
@@ -35,17 +40,23 @@ class LearnerConfig:
     """Train recurrent SAC from replayed episodes and broadcast the actor's weights."""
 
     algorithm: str = "equi_rsac"
-    """equi_rsac (C4/D4-equivariant, `--net.group c4|d4`) or rsac (the non-equivariant twin, same widths)."""
+    """equi_rsac (C4/D4-equivariant, `--net.group c4|d4`), rsac (the non-equivariant twin, same widths)
+    or gasv2 (DreamerV2 world model + imagination actor; Surgical Grasp Any; `--preset gasv2...`)."""
     net: NetConfig = field(default_factory=lambda: NET_PRESETS["paper"])
-    """Network widths and symmetry group."""
+    """Network widths and symmetry group (SAC)."""
     sac: SacSettings = SacSettings()
     """SAC hyperparameters."""
+    dreamer: DreamerConfig = field(default_factory=lambda: DREAMER_PRESETS["paper"])
+    """GASv2's world model, actor and critic (gasv2 only)."""
+    chunk_length: int = 6
+    """gasv2: observations per training window (GASv2: batch 100 x length 6)."""
     observation: str = "voxel"
-    """What the policy sees: voxel (orthographic projection; EquiObs/MEA) or depth (rendered; Equi-RSAC)."""
+    """What the policy sees: voxel (orthographic projection; EquiObs/MEA), depth (rendered; Equi-RSAC)
+    or dsa (the surgical task's DSA image; gasv2)."""
     replay_capacity: int = 100_000
     """Replay capacity in transitions (raw and augmented copies alike; demonstrations are never evicted)."""
     batch_size: int = 32
-    """Whole episodes per update."""
+    """Whole episodes per update (SAC); windows of chunk_length per update (gasv2)."""
     demo_fraction: float = 0.0
     """Share of every batch drawn from the demonstration set (demos and all their augmented copies),
     the rest from the other episodes (RLPD / SERL symmetric sampling); 0 samples uniformly (the paper)."""
@@ -100,11 +111,13 @@ class LearnerConfig:
             raise ValueError(f"algorithm must be one of {ALGORITHMS}, not {self.algorithm!r}")
         if self.algorithm == "rsac" and self.net.group != "none":  # the twin: same widths, plain layers
             object.__setattr__(self, "net", dataclasses.replace(self.net, group="none"))
+        if (self.algorithm == "gasv2") != (self.observation == "dsa"):
+            raise ValueError("the gasv2 learner observes dsa (the surgical DSA image), and only it does")
         if self.algorithm == "equi_rsac" and self.net.group == "none":
             raise ValueError("equi_rsac needs --net.group c4 or d4 (the plain twin is --algorithm rsac)")
         if self.observation not in OBSERVATIONS:
             raise ValueError(f"observation must be one of {OBSERVATIONS}, not {self.observation!r}")
-        for name in ("batch_size", "seq_len", "publish_every", "queue"):
+        for name in ("batch_size", "seq_len", "publish_every", "queue", "chunk_length"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
         if self.keep_checkpoints < 1 or self.checkpoint_max_bytes < 0:
@@ -179,6 +192,53 @@ PRESETS["cpu-small-state"] = dataclasses.replace(
 )
 
 
+# GASv2 on Surgical Grasp Any (the reference's training settings, tasks-and-baselines.md section 5):
+# windows of 6 observations, 100 per update, one update per 2 env steps (`train_every` 2), replay
+# 5e5 transitions, episodes of at most 80 steps; demos and their MEA copies are pinned in replay.
+# The reference prefills 9e3 random steps before training; here actors act with the initial policy
+# (a near-uniform categorical over the nine actions) until min_steps env steps are in.
+PRESETS["gasv2"] = LearnerConfig(
+    algorithm="gasv2",
+    observation="dsa",
+    dreamer=DREAMER_PRESETS["paper"],
+    batch_size=100,
+    chunk_length=6,
+    seq_len=80,
+    replay_capacity=500_000,
+    samples_per_insert=0.5,
+    min_steps=10_000,
+    error_buffer=200.0,
+    publish_every=10,
+)
+# gasv2-cpu-small: two CPU cores and about an hour per run (README, "Presets"): the world model's
+# cpu-small widths (gasv2/config.py), 16 windows per update instead of 100, training from 500 env
+# steps, and the demo-aware sampling of the cpu-small SAC recipe (half of every batch from the demos,
+# their copies and online successes); everything else as gasv2.
+PRESETS["gasv2-cpu-small"] = dataclasses.replace(
+    PRESETS["gasv2"],
+    dreamer=DREAMER_PRESETS["cpu-small"],
+    batch_size=16,
+    replay_capacity=200_000,
+    min_steps=500,
+    error_buffer=100.0,
+    demo_fraction=0.5,
+    successes_as_demos=True,
+    publish_every=5,
+    checkpoint_minutes=5.0,
+)
+# gasv2-smoke: tiny networks and batches for end-to-end tests of the stack; learns nothing.
+PRESETS["gasv2-smoke"] = dataclasses.replace(
+    PRESETS["gasv2"],
+    dreamer=DREAMER_PRESETS["smoke"],
+    batch_size=2,
+    replay_capacity=20_000,
+    min_steps=50,
+    error_buffer=50.0,
+    publish_every=2,
+    checkpoint_minutes=1.0,
+)
+
+
 def default_run_id(run_dir: Path) -> str:
     """A version lineage id for a fresh run: the run directory's name (made label-safe) and the start time."""
     stem = re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:60] or "run"
@@ -190,6 +250,11 @@ def build_trainer(cfg: LearnerConfig, guard: AbstractContextManager[object] | No
     and the replay's own generator from ``cfg.seed``."""
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
+    limiter = SampleToInsertRatio(cfg.samples_per_insert, cfg.min_steps, cfg.error_buffer)
+    if cfg.algorithm == "gasv2":
+        replay = ChunkReplay(cfg.replay_capacity, seq_len=cfg.seq_len, seed=cfg.seed)
+        agent = GasV2Agent(cfg.dreamer, seed=cfg.seed)
+        return GasV2Trainer(agent, replay, limiter, rng, cfg.trainer_settings(), cfg.chunk_length, guard)
     sac = RecurrentSAC(build_actor(cfg.net), build_critic(cfg.net), cfg.sac)
     replay = SequenceReplay(
         cfg.replay_capacity,
@@ -199,7 +264,6 @@ def build_trainer(cfg: LearnerConfig, guard: AbstractContextManager[object] | No
         seed=cfg.seed,
         state_dim=STATE_DIM if cfg.net.critic_input == "state" else 0,
     )
-    limiter = SampleToInsertRatio(cfg.samples_per_insert, cfg.min_steps, cfg.error_buffer)
     return Trainer(sac, replay, limiter, rng, cfg.trainer_settings(), guard)
 
 

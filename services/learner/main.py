@@ -1,4 +1,5 @@
-"""`mea learner`: train recurrent SAC (Equi-RSAC) from replay and broadcast versioned weights.
+"""`mea learner`: train recurrent SAC (Equi-RSAC) or GASv2 (`--algorithm gasv2`, a DreamerV2 world
+model with an imagination actor) from replay and broadcast versioned weights.
 
 The training (replay, sample-to-insert limiter, SAC updates, the replay gate's arithmetic) is the
 pure ``services.learner.core.trainer``; this shell wires it to the bus, the weights server, the
@@ -54,7 +55,8 @@ from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.weights import WeightsServer
 from services.learner import checkpoint
 from services.learner.config import PRESETS, LearnerConfig, build_trainer, default_run_id
-from services.learner.core.policy import PolicySpec, actor_tensors
+from services.learner.core.gasv2.policy import GasV2Spec
+from services.learner.core.policy import PolicySpec
 from services.learner.metrics import UpdateRate, learner_metrics, record_gate, record_update, rejection_reason
 
 log = logging.getLogger(__name__)
@@ -71,7 +73,9 @@ class Learner:
             torch.set_num_threads(cfg.threads)
         self.lock = threading.Lock()  # the trainer's guard: ingest vs the training loop
         self.trainer = build_trainer(cfg, self.lock)
-        self.spec = PolicySpec(cfg.net, cfg.observation)
+        self.spec = (
+            GasV2Spec(cfg.dreamer) if cfg.algorithm == "gasv2" else PolicySpec(cfg.net, cfg.observation)
+        )
         self.mx = learner_metrics(ctx.metrics)
         self.mx["replay_bytes"].set(self.trainer.replay.nbytes)
         self.server = WeightsServer(ctx.bus, ctx.instance)
@@ -163,11 +167,7 @@ class Learner:
         checkpoint.record_published(self.ckpt_dir, self.run_id, self.version)
         self.published_at = self.trainer.updates
         blob = WeightsBlob.create(
-            self.version,
-            "equi_rsac" if self.cfg.algorithm == "equi_rsac" else "rsac",
-            self.run_id,
-            actor_tensors(self.trainer.sac.actor),
-            self.spec.to_json(),
+            self.version, self.cfg.algorithm, self.run_id, self.trainer.policy_tensors(), self.spec.to_json()
         )
         self.server.publish(blob)
         self.ctx.policy_version = self.version
@@ -261,7 +261,8 @@ def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None =
         core.publish_weights()
         core.start_ingest()
         ctx.detail = f"run {core.run_id}"
-        log.info("training", extra={"algorithm": cfg.algorithm, "group": cfg.net.group, "run_id": core.run_id,
+        group = "-" if cfg.algorithm == "gasv2" else cfg.net.group
+        log.info("training", extra={"algorithm": cfg.algorithm, "group": group, "run_id": core.run_id,
                                     "version": core.version, "replay_bytes": core.trainer.replay.nbytes})  # fmt: skip
         try:
             core.loop()

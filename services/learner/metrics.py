@@ -8,6 +8,9 @@ from typing import Any
 from services.common.metrics import ServiceMetrics
 from services.learner.core.trainer import GateReading
 
+LOSSES = ("critic", "actor", "alpha", "bc", "model", "image", "reward", "discount", "kl")
+"""``mea_learner_loss{loss}`` labels: SAC's (critic, actor, alpha, bc) and GASv2's (its world model's
+model, image, reward, discount and kl terms; its actor and critic)."""
 RATE_WINDOW_SECONDS = 30.0
 """``mea_learner_updates_per_second`` counts the updates of this many recent seconds."""
 
@@ -21,7 +24,7 @@ def learner_metrics(m: ServiceMetrics) -> dict[str, Any]:
             "Wall time of one update (sample, transfer, losses, optimiser steps).",
             (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0),
         ),
-        "loss": m.gauge("mea_learner_loss", "Latest loss by name (critic, actor, alpha, bc).", ["loss"]),
+        "loss": m.gauge("mea_learner_loss", "Latest loss by name (LOSSES: SAC and GASv2 terms).", ["loss"]),
         "alpha": m.gauge("mea_learner_alpha", "Entropy temperature."),
         "batch_demo_share": m.gauge(
             "mea_learner_batch_demo_share",
@@ -30,7 +33,10 @@ def learner_metrics(m: ServiceMetrics) -> dict[str, Any]:
         "batch_reward_transitions": m.gauge(
             "mea_learner_batch_reward_transitions", "Transitions with reward > 0 in the latest batch."
         ),
-        "entropy": m.gauge("mea_learner_policy_entropy", "Latest policy entropy estimate (-mean log pi)."),
+        "entropy": m.gauge(
+            "mea_learner_policy_entropy",
+            "Latest policy entropy estimate (SAC: -mean log pi; GASv2: the imagination actor's).",
+        ),
         "q": m.gauge("mea_learner_q", "Latest mean Q values (q1, q2, target).", ["stat"]),
         "updates_per_second": m.gauge("mea_learner_updates_per_second", "Updates per second (recent)."),
         "wait": m.counter("mea_learner_wait_seconds", "Time the trainer waited for the limiter or data."),
@@ -78,15 +84,19 @@ def record_update(mx: dict[str, Any], info: dict[str, float], seconds: float, ra
     """One update's wall time, losses and statistics (``Trainer.step``'s info) and the recent rate."""
     mx["updates"].inc()
     mx["update_seconds"].observe(seconds)
-    for name in ("critic", "actor", "alpha", "bc"):
+    for name in LOSSES:
         if f"{name}_loss" in info:
             mx["loss"].labels(name).set(info[f"{name}_loss"])
-    mx["alpha"].set(info["alpha"])
     mx["batch_demo_share"].set(info["batch_demo_share"])
     mx["batch_reward_transitions"].set(info["batch_reward_transitions"])
-    mx["entropy"].set(info["entropy"])
+    if "alpha" in info:  # SAC only
+        mx["alpha"].set(info["alpha"])
+    entropy = info.get("entropy", info.get("actor_entropy"))
+    if entropy is not None:
+        mx["entropy"].set(entropy)
     for stat, key in (("q1", "q1"), ("q2", "q2"), ("target", "target_q")):
-        mx["q"].labels(stat).set(info[key])
+        if key in info:
+            mx["q"].labels(stat).set(info[key])
     if rate is not None:
         mx["updates_per_second"].set(rate)
 

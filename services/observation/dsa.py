@@ -78,11 +78,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from proto.episode import DSA_TASKS
 from services.observation.dsa_noise import camera_pose_noise, image_noise
 from services.observation.image_format import CODE_MAX, DTYPE
 
 __all__ = [
     "CONTROLLER_STATES",
+    "DSA_TASKS",
     "FSM_STATES",
     "GRIPPER_STATES",
     "STATE_ROW",

@@ -251,7 +251,7 @@ def test_the_evaluation_at_the_budget_runs_final_episodes_held_out_seeds(tmp_pat
 
     rolled: list[int] = []
 
-    def fake_run_episode(env, seed, act, builder, on_step=None):
+    def fake_run_episode(env, seed, act, builder, on_step=None, executed=None):
         rolled.append(seed)
         success = seed % 2 == 0  # even seeds succeed after 10 steps, odd ones time out at 50
         for t in range(10 if success else 50):

@@ -51,7 +51,7 @@ def test_a_cpu_small_run_is_make_runs_recipe_with_only_variant_seed_budget_and_r
     ]  # `make run`: mea run --task block_pull --demos 2
     parsed = config.parse(RunConfig, RUN_PRESETS, args, "mea run", "")
     expected = dataclasses.replace(
-        RunConfig(), variant="equiobs", env_steps=BUDGET, run_dir=tmp_path / "block_pull-equiobs-s0"
+        RunConfig(), variant="equiobs", env_steps=BUDGET, demos=2, run_dir=tmp_path / "block_pull-equiobs-s0"
     )
     assert parsed == expected  # every other setting, the learner's included, is mea run's default
     assert (parsed.eval_every, parsed.eval_episodes, parsed.final_eval_episodes) == (1000, 20, 50)
@@ -197,3 +197,22 @@ def test_a_run_directory_made_with_another_budget_is_refused_before_training(tmp
     config.save(RunConfig(variant="mea", env_steps=8_000, run_dir=old), old / "config.json")
     with pytest.raises(SystemExit, match="env_steps.*delete it"):
         run(LearningBenchConfig(out=out, variants=("equirsac", "mea")))
+
+
+def test_surgical_grasp_any_compares_gasv2_with_mea_gasv2_on_ten_demos(tmp_path):
+    cfg = LearningBenchConfig(out=tmp_path, task="surgical_grasp_any")
+    s = settings(cfg)
+    assert s.variants == ("gasv2", "mea-gasv2") and s.demos == 10 and s.seeds == 1
+    parsed = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, "mea-gasv2", 0, s), "mea run", "")
+    assert (parsed.task, parsed.variant, parsed.demos, parsed.env_steps) == (
+        "surgical_grasp_any",
+        "mea-gasv2",
+        10,
+        s.budget,
+    )
+    paper = settings(LearningBenchConfig(out=tmp_path, task="surgical_grasp_any", preset="paper"))
+    assert (paper.budget, paper.seeds, paper.eval_every, paper.learner) == (420_000, 3, 10_000, "paper")
+    with pytest.raises(SystemExit, match="does not run on"):
+        settings(LearningBenchConfig(task="surgical_grasp_any", variants=("mea",)))
+    with pytest.raises(SystemExit, match="does not run on"):
+        settings(LearningBenchConfig(task="block_pull", variants=("gasv2",)))

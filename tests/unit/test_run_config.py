@@ -88,7 +88,7 @@ def test_the_plan_derives_every_service_config_from_the_run_and_its_learner_pres
     assert (learner.net.group, learner.max_env_steps, learner.seed, learner.threads) == ("d4", 3000, 2, 1)
     assert learner.run_dir == tmp_path / "learner" and not learner.resume
     a0, a1 = specs[2].config, specs[3].config
-    assert (a0.demos, a1.demos) == (run.demos, 0) and (a0.index, a1.index) == (0, 1)
+    assert (a0.demos, a1.demos) == (run.resolved_demos(), 0) and (a0.index, a1.index) == (0, 1)
     assert a0.policy == "learned" and a0.task == "drawer_open" and a0.seed_base == a1.seed_base
     ev = config_for(run, tmp_path, "evaluator", 0)
     assert (ev.task, ev.every_env_steps, ev.episodes, ev.final_env_steps, ev.final_episodes) == (
@@ -230,3 +230,28 @@ def test_a_restarted_instance_repeats_no_demo_or_seed_and_a_learner_resumes(tmp_
     assert len(set(firsts)) == 20 and max(firsts) - min(firsts) < 2_000_000
     assert not by["learner-0"].config.resume and restarted(by["learner-0"], 1).config.resume
     assert restarted(by["augmenter-0"], 3) == by["augmenter-0"]
+
+
+def test_surgical_runs_take_the_gasv2_variants_and_learner(tmp_path):
+    with pytest.raises(ValueError, match="does not run on surgical_grasp_any"):
+        RunConfig(task="surgical_grasp_any", variant="mea")
+    with pytest.raises(ValueError, match="does not run on block_pull"):
+        RunConfig(task="block_pull", variant="mea-gasv2")
+    run = RunConfig(task="surgical_grasp_any", variant="mea-gasv2", run_dir=tmp_path)
+    assert run.resolved_demos() == 10 and RunConfig().resolved_demos() == 2
+    specs, _ = child_specs(run, tmp_path)
+    by = {s.service: s.config for s in specs}
+    learner, augmenter, actor = by["learner"], by["augmenter"], by["actor"]
+    assert learner == dataclasses.replace(LEARNER_PRESETS["gasv2-cpu-small"], threads=1, max_env_steps=run.env_steps,
+                                          seed=0, run_dir=tmp_path / "learner", resume=False, service=learner.service)  # fmt: skip
+    assert (
+        augmenter.augment.mea_on == "successes" and actor.demos == 10 and actor.task == "surgical_grasp_any"
+    )
+    paper = config_for(
+        dataclasses.replace(run, learner_preset="paper", variant="gasv2"), tmp_path, "learner", 0
+    )
+    assert paper.algorithm == "gasv2" and paper.batch_size == 100 and paper.dreamer.deter == 1024
+    plain = config_for(dataclasses.replace(run, variant="gasv2"), tmp_path, "augmenter", 0)
+    assert plain.augment.mea_on == "none"
+    with pytest.raises(ValueError, match="has no gasv2 learner"):
+        dataclasses.replace(run, learner_preset="cpu-small-state")

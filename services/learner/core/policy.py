@@ -18,13 +18,16 @@ import numpy as np
 import torch
 
 from proto.actions import ACTION_DIM
+from proto.episode import DSA_TASKS
 from proto.weights import WeightsBlob
+from services.learner.core.gasv2.policy import GasV2Spec, LatentRuntime
 from services.learner.core.networks import Actor, NetConfig, build_actor
 from services.learner.core.sac import deterministic_action, tanh_gaussian_sample
 from services.observation.image_format import INPUT_SCALE
 
-OBSERVATIONS = ("voxel", "depth")
-"""`voxel`: the voxel orthographic projection (EquiObs, MEA); `depth`: the rendered depth image (Equi-RSAC)."""
+OBSERVATIONS = ("voxel", "depth", "dsa")
+"""`voxel`: the voxel orthographic projection (EquiObs, MEA); `depth`: the rendered depth image
+(Equi-RSAC); `dsa`: the surgical task's own DSA image (GASv2; ``services.observation.dsa``)."""
 
 
 def images_from_codes(codes: torch.Tensor) -> torch.Tensor:
@@ -59,12 +62,25 @@ class ObservationUnavailableError(ValueError):
     """The weights' policy observes an image this consumer does not render."""
 
 
-def check_observation(observation: str, depth_image: bool, consumer: str) -> None:
+def check_observation(observation: str, depth_image: bool, consumer: str, task: str = "") -> None:
     """Refuse a policy whose observation this consumer cannot build: a ``depth`` policy needs the
-    rendered depth image (a service started with ``--depth-image``). One check for the actor and the
-    evaluator; ``consumer`` names the service in the message ("an actor", "an evaluator")."""
+    rendered depth image (a service started with ``--depth-image``); a ``dsa`` policy needs a task
+    whose env renders the DSA image (``DSA_TASKS``), and those tasks render nothing else. One check for
+    the actor and the evaluator; ``consumer`` names the service in the message ("an actor", "an
+    evaluator"), ``task`` its task (empty: not checked)."""
     if observation == "depth" and not depth_image:
         raise ObservationUnavailableError(f"a depth-image policy needs {consumer} started with --depth-image")
+    if task and (observation == "dsa") != (task in DSA_TASKS):
+        raise ObservationUnavailableError(
+            f"a {observation!r} policy cannot run on {task} (the DSA image is {', '.join(DSA_TASKS)}'s observation)"
+        )
+
+
+def blob_observation(blob: WeightsBlob) -> str:
+    """What the blob's policy observes, from its spec (ValueError if the spec does not parse)."""
+    if blob.algorithm == "gasv2":
+        return GasV2Spec.from_json(blob.config_json).observation
+    return PolicySpec.from_json(blob.config_json).observation
 
 
 def actor_tensors(actor: Actor) -> dict[str, np.ndarray]:
@@ -73,17 +89,28 @@ def actor_tensors(actor: Actor) -> dict[str, np.ndarray]:
 
 
 class PolicyRuntime:
+    """The policy a consumer runs, whichever learner made it: recurrent SAC's actor (``equi_rsac``,
+    ``rsac``) or GASv2's latent policy (``gasv2``, ``gasv2.policy.LatentRuntime``), rebuilt from each
+    blob as its ``algorithm`` and ``config_json`` say."""
+
     def __init__(self, deterministic: bool = False, seed: int = 0) -> None:
         self.deterministic = deterministic
         self.generator = torch.Generator().manual_seed(seed)
         self.actor: Actor | None = None
-        self.spec: PolicySpec | None = None
+        self.spec: PolicySpec | GasV2Spec | None = None
         self.version = -1
+        self._latent: LatentRuntime | None = None
         self._state = None
         self._prev = torch.zeros(1, ACTION_DIM)
 
     def load(self, blob: WeightsBlob) -> None:
-        """Rebuild (if the spec changed) and load the blob's tensors; raises ValueError if they do not fit."""
+        """Rebuild (if the spec changed) and load the blob's tensors; raises ValueError if they do not
+        fit (the running policy is then unchanged)."""
+        if blob.algorithm == "gasv2":
+            latent = self._latent or LatentRuntime(self.deterministic, self.generator)
+            latent.load(blob)
+            self._latent, self.actor, self.spec, self.version = latent, None, latent.spec, blob.version
+            return
         spec = PolicySpec.from_json(blob.config_json)
         actor = self.actor if spec == self.spec and self.actor is not None else build_actor(spec.net)
         state = {k: torch.from_numpy(np.array(v)) for k, v in blob.tensors.items()}
@@ -97,19 +124,30 @@ class PolicyRuntime:
                              f"(e.g. {wrong[:3]})")  # fmt: skip
         actor.load_state_dict(state, strict=True)
         actor.eval()
-        self.actor, self.spec, self.version = actor, spec, blob.version
+        self.actor, self.spec, self.version, self._latent = actor, spec, blob.version, None
 
     @property
     def ready(self) -> bool:
-        return self.actor is not None
+        return self.actor is not None or self._latent is not None
 
     def reset(self) -> None:
         self._state = None
         self._prev = torch.zeros(1, ACTION_DIM)
+        if self._latent is not None:
+            self._latent.reset()
+
+    def executed(self, action: np.ndarray) -> None:
+        """What the env executed on the last step (it may differ from what ``act`` chose: Surgical Grasp
+        Any's hybrid controller drives the approach). GASv2's latent state needs it; SAC, whose tasks
+        execute what it chose, keeps its own previous action."""
+        if self._latent is not None:
+            self._latent.executed(action)
 
     @torch.no_grad()
     def act(self, image_codes: np.ndarray) -> np.ndarray:
         """One action (5,) in [-1, 1] for uint8 image codes (C, H, W); carries the recurrent state."""
+        if self._latent is not None:
+            return self._latent.act(image_codes)
         if self.actor is None:
             raise RuntimeError("no weights loaded")
         x = images_from_codes(torch.from_numpy(np.ascontiguousarray(image_codes))[None])

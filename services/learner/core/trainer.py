@@ -26,6 +26,7 @@ import numpy as np
 
 from proto.control import ReplayGate
 from services.learner.core.batch import to_batch
+from services.learner.core.policy import actor_tensors
 from services.learner.core.privileged import episode_critic_state
 from services.learner.core.rate_limiter import RateLimiter
 from services.learner.core.replay import SequenceReplay
@@ -115,6 +116,15 @@ class Trainer:
     ) -> None:
         self.sac, self.replay, self.limiter, self.rng, self.settings = sac, replay, limiter, rng, settings
         self.guard = guard if guard is not None else nullcontext()
+
+    @property
+    def agent(self) -> RecurrentSAC:
+        """What learns: its ``state_dict`` is the checkpoint's learner part, ``updates`` its count."""
+        return self.sac
+
+    def policy_tensors(self) -> dict[str, np.ndarray]:
+        """The published part (a WeightsBlob's tensors): the actor's parameters and buffers."""
+        return actor_tensors(self.sac.actor)
 
     @property
     def env_steps(self) -> int:

@@ -1,0 +1,134 @@
+"""GASv2's policy runtime: the published ``LatentPolicy`` (encoder, RSSM, actor) stepped one
+observation at a time, with its recurrent latent state carried across an episode.
+
+The world model's posterior at observation t needs the action that *led* to it as executed, which
+in Surgical Grasp Any is the hybrid controller's while it drives the approach, not the policy's.
+So the consumer tells the runtime what was executed after every env step (``executed``); the
+runtime keeps the jaw command it implies, to turn its next discrete choice into the 5-vector the
+env takes (``proto.discrete_actions.to_vector``) and the executed action into the world model's
+feature (``action_features``). While the controller drives, the policy's choice is ignored by the
+env but the latent state still follows the observations, as in the learner's training windows.
+
+Stochastic (actors: a sample of the actor's categorical) or deterministic (the evaluator: its mode).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from proto.actions import ACTION_DIM, JAW
+from proto.discrete_actions import to_vector
+from proto.weights import WeightsBlob
+from services.learner.core.gasv2.action_features import FEATURE_DIM, features
+from services.learner.core.gasv2.agent import LatentPolicy, build_policy
+from services.learner.core.gasv2.config import DreamerConfig
+from services.observation.image_format import INPUT_SCALE
+
+OBSERVATION = "dsa"
+"""GASv2 observes the env's DSA image (Surgical Grasp Any: 3 x 64 x 64 uint8)."""
+
+
+@dataclass(frozen=True)
+class GasV2Spec:
+    """What a consumer needs to rebuild and feed the policy; travels as the blob's ``config_json``."""
+
+    dreamer: DreamerConfig
+    observation: str = OBSERVATION
+
+    def to_json(self) -> str:
+        return json.dumps(
+            {"dreamer": self.dreamer.to_dict(), "observation": self.observation}, sort_keys=True
+        )
+
+    @classmethod
+    def from_json(cls, text: str) -> GasV2Spec:
+        try:
+            d = json.loads(text)
+            spec = cls(
+                dreamer=DreamerConfig.from_dict(d["dreamer"]), observation=d.get("observation", OBSERVATION)
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"weights config_json is not a GASv2 policy spec: {exc}") from exc
+        if spec.observation != OBSERVATION:
+            raise ValueError(f"a GASv2 policy observes {OBSERVATION!r}, not {spec.observation!r}")
+        return spec
+
+
+def check_tensors(
+    module: torch.nn.Module, tensors: dict[str, np.ndarray], version: int
+) -> dict[str, torch.Tensor]:
+    """``tensors`` as torch tensors if every name and shape fits ``module`` (ValueError otherwise):
+    checked before loading, since ``load_state_dict`` copies what fits before it raises."""
+    state = {k: torch.from_numpy(np.array(v)) for k, v in tensors.items()}
+    expected = {k: tuple(v.shape) for k, v in module.state_dict().items()}
+    got = {k: tuple(v.shape) for k, v in state.items()}
+    if got != expected:
+        wrong = sorted(k for k in expected.keys() | got.keys() if expected.get(k) != got.get(k))
+        raise ValueError(
+            f"weights v{version} do not fit the network: {len(wrong)} tensors differ (e.g. {wrong[:3]})"
+        )
+    return state
+
+
+class LatentRuntime:
+    """One GASv2 policy, stepped one observation at a time (see the module docstring)."""
+
+    def __init__(self, deterministic: bool, generator: torch.Generator) -> None:
+        self.deterministic, self.generator = deterministic, generator
+        self.policy: LatentPolicy | None = None
+        self.spec: GasV2Spec | None = None
+        self.logits: torch.Tensor | None = None
+        self.reset()
+
+    def load(self, blob: WeightsBlob) -> None:
+        spec = GasV2Spec.from_json(blob.config_json)
+        policy = self.policy if spec == self.spec and self.policy is not None else build_policy(spec.dreamer)
+        policy.load_state_dict(check_tensors(policy, blob.tensors, blob.version), strict=True)
+        policy.eval()
+        self.policy, self.spec = policy, spec
+
+    def reset(self) -> None:
+        self._state = None
+        self._prev_feature = torch.zeros(1, FEATURE_DIM)
+        self._jaw_open = True  # the jaw command before the next step: open at an episode's start
+        self._pending: np.ndarray | None = None  # the last step's action, until the next act()
+        self._first = True
+
+    def executed(self, action: np.ndarray) -> None:
+        """The action the env executed on the last step (its ``info['executed_action']``): replaces
+        the one this runtime chose as the action that led to the next observation."""
+        self._pending = np.asarray(action, np.float32).reshape(ACTION_DIM)
+
+    def _advance(self) -> None:
+        """Make the last step's action the world model's input for the next observation."""
+        if self._pending is None:
+            return
+        a = self._pending[None]
+        self._prev_feature = torch.from_numpy(features(a, jaw_open_at_start=self._jaw_open))
+        self._jaw_open, self._pending = bool(a[0, JAW] >= 0.0), None
+
+    @torch.no_grad()
+    def act(self, image_codes: np.ndarray) -> np.ndarray:
+        """The 5-vector of the chosen discrete action for uint8 DSA codes (3, 64, 64)."""
+        if self.policy is None:
+            raise RuntimeError("no weights loaded")
+        self._advance()
+        if self._state is None:
+            self._state = self.policy.initial_state(1)
+        x = torch.from_numpy(np.ascontiguousarray(image_codes))[None].to(torch.float32).mul_(INPUT_SCALE)
+        first = torch.tensor([self._first])
+        logits, self._state = self.policy.step(
+            self._state, self._prev_feature, x, first, generator=self.generator
+        )
+        self._first = False
+        self.logits = logits[0]  # the last step's action logits (for tests and diagnostics)
+        if self.deterministic:
+            index = int(logits.argmax(-1))
+        else:
+            index = int(torch.multinomial(torch.softmax(logits, -1), 1, generator=self.generator))
+        self._pending = to_vector(index, self._jaw_open)  # executed unless the env reports otherwise
+        return self._pending.copy()
