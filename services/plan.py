@@ -124,6 +124,7 @@ def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any
         else preset.net,
         observation=variant(run.variant).observation,
         threads=1,
+        device=run.learner_device,
         max_env_steps=run.env_steps,
         seed=run.seed,
         run_dir=run_dir / "learner",

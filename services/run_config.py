@@ -43,6 +43,8 @@ class RunConfig:
     learner_preset: str = "cpu-small"
     """Learner preset: cpu-small (two CPU cores), cpu-small-state (the same with a critic on the
     simulator's state), paper (a GPU workstation), smoke (tests)."""
+    learner_device: str = "cpu"
+    """torch device of the learner (cuda on a GPU workstation; the GASv2 learner only, for now)."""
     seed: int = 0
     """Run seed: actors' training seeds, augmentation, networks (evaluation seeds are fixed)."""
     eval_every: int = 1000
@@ -155,6 +157,10 @@ class RunConfig:
         if self.mea_on and not VARIANTS[self.variant].mea:
             raise ValueError("--mea-on applies to --variant mea and mea-gasv2 only")
         check_task(self.variant, self.task)
+        if self.learner_device != "cpu" and VARIANTS[self.variant].algorithm != "gasv2":
+            raise ValueError(
+                f"learner_device {self.learner_device!r}: only the gasv2 learner runs off the CPU"
+            )
         if VARIANTS[self.variant].algorithm == "gasv2" and self.learner_preset not in GASV2_PRESETS:
             raise ValueError(f"learner preset {self.learner_preset!r} has no gasv2 learner; choose one of "
                              f"{sorted(GASV2_PRESETS)}")  # fmt: skip

@@ -61,7 +61,7 @@ VARIANTS = {
 TASK_VARIANTS = {"surgical_grasp_any": ("gasv2", "mea-gasv2")}
 """The comparison run on a task where it is not the general manipulation one (``VARIANTS``' first three)."""
 SURGICAL_PRESETS: dict[str, dict[str, Any]] = {
-    "cpu-small": {"env_steps": 8_000, "seeds": 1, "eval_every": 2_000, "eval_episodes": 20,
+    "cpu-small": {"env_steps": 16_000, "seeds": 1, "eval_every": 2_000, "eval_episodes": 20,
                   "final_eval_episodes": 20, "demos": 10},
     "paper": {"env_steps": 420_000, "seeds": 3, "eval_every": 10_000, "eval_episodes": 20,
               "final_eval_episodes": 20, "demos": 10},

@@ -97,6 +97,9 @@ class LearnerConfig:
     """Env-step budget of the run: the replay gate never allows more (actors stop there); 0: none."""
     threads: int = 0
     """torch intra-op threads (0: torch's default)."""
+    device: str = "cpu"
+    """gasv2: torch device of the networks and batches (e.g. cuda on a GPU workstation; the replay
+    stays in host memory and published weights are copied to the CPU). SAC runs on the CPU."""
     seed: int = 0
     """Seed of networks, sampling and exploration noise."""
     queue: int = 64
@@ -128,6 +131,8 @@ class LearnerConfig:
             raise ValueError(f"demo_fraction must be in [0, 1], got {self.demo_fraction}")
         if self.net.critic_input == "state" and self.sac.share_encoder:
             raise ValueError("sac.share_encoder needs the image critic (net.critic_input image)")
+        if self.device != "cpu" and self.algorithm != "gasv2":
+            raise ValueError(f"device {self.device!r}: only the gasv2 learner runs off the CPU")
         if self.samples_per_insert <= 0 or self.min_steps < 0 or self.error_buffer < 0:
             raise ValueError("samples_per_insert must be > 0, min_steps and error_buffer >= 0")
 
@@ -253,7 +258,7 @@ def build_trainer(cfg: LearnerConfig, guard: AbstractContextManager[object] | No
     limiter = SampleToInsertRatio(cfg.samples_per_insert, cfg.min_steps, cfg.error_buffer)
     if cfg.algorithm == "gasv2":
         replay = ChunkReplay(cfg.replay_capacity, seq_len=cfg.seq_len, seed=cfg.seed)
-        agent = GasV2Agent(cfg.dreamer, seed=cfg.seed)
+        agent = GasV2Agent(cfg.dreamer, seed=cfg.seed, device=cfg.device)
         return GasV2Trainer(agent, replay, limiter, rng, cfg.trainer_settings(), cfg.chunk_length, guard)
     sac = RecurrentSAC(build_actor(cfg.net), build_critic(cfg.net), cfg.sac)
     replay = SequenceReplay(

@@ -108,3 +108,14 @@ def test_gasv2_learner_trains_publishes_a_latent_policy_and_resumes_its_lineage(
     resumed = [d.message for d in announces2.drain()]
     assert resumed and min(a.version for a in resumed) > max(versions)
     assert {a.algorithm for a in resumed} == {"gasv2"} and len({a.run_id for a in resumed}) == 1
+
+
+def test_only_the_gasv2_learner_leaves_the_cpu():
+    from services.learner.config import LearnerConfig, build_trainer
+
+    with pytest.raises(ValueError, match="only the gasv2 learner"):
+        LearnerConfig(device="cuda")
+    trainer = build_trainer(dataclasses.replace(PRESETS["gasv2-smoke"], device="cpu"))
+    assert str(trainer.agent.device) == "cpu" and set(trainer.policy_tensors()) == set(
+        trainer.agent.policy.state_dict()
+    )

@@ -65,7 +65,7 @@ class GasV2Trainer(Trainer):
             )
         if sample is None:
             return None
-        info = self.gasv2.update(to_chunk_batch(sample))
+        info = self.gasv2.update(to_chunk_batch(sample, self.gasv2.device))
         info["batch_demo_share"] = float(np.mean(sample.demo))
         info["batch_reward_transitions"] = float((sample.rewards > 0).sum())
         with self.guard:
