@@ -65,7 +65,7 @@ def service_settings(run: RunConfig, run_dir: Path, service: str, index: int) ->
 
 def actor_config(run: RunConfig, index: int, service: ServiceConfig) -> ActorConfig:
     """Actor ``index``: the learned policy when the run has a learner (random otherwise),
-    demonstrations from actor 0 only (not again on resume), the depth image where the variant
+    demonstrations and the random prefill from actor 0 only (not again on resume or restart), the depth image where the variant
     observes it, and a seed base that moves on with every resume (``proto.seeds``)."""
     return ActorConfig(
         task=run.task,
@@ -73,6 +73,7 @@ def actor_config(run: RunConfig, index: int, service: ServiceConfig) -> ActorCon
         policy="learned" if "learner" in run.services else "random",
         seed_base=actor_seed_base(run.seed, run.resumes),
         demos=run.resolved_demos() if index == 0 and run.resume is None else 0,
+        random_steps=run.resolved_random_steps() if index == 0 and run.resume is None else 0,
         depth_image=variant(run.variant).depth_image,
         follow_gate=run.follow_gate,
         service=service,
@@ -197,7 +198,7 @@ def restarted(spec: ChildSpec, restarts: int) -> ChildSpec:
     lineage); the others start as they did."""
     cfg = spec.config
     if spec.service == "actor":
-        cfg = dataclasses.replace(cfg, demos=0, incarnation=restarts)
+        cfg = dataclasses.replace(cfg, demos=0, random_steps=0, incarnation=restarts)
     elif spec.service == "learner":
         cfg = dataclasses.replace(cfg, resume=True)
     return dataclasses.replace(spec, config=cfg)

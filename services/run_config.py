@@ -19,6 +19,9 @@ SERVICE_MODULES = {s: f"services.{s}.main" for s in SERVICE_ORDER}
 MEA_ON = ("", "demos", "successes", "all")
 GASV2_PRESETS = {"paper": "gasv2", "cpu-small": "gasv2-cpu-small", "smoke": "gasv2-smoke"}
 """The GASv2 learner preset a run's ``learner_preset`` stands for with a GASv2 variant."""
+RANDOM_PREFILL = {"paper": 9_000, "cpu-small": 1_000, "smoke": 0}
+"""GASv2 runs' random prefill per learner preset: the reference's 9e3 random steps (`low_oracle3`,
+beside 10 oracle demos) on the paper's 420K; 1,000 on the CPU budget of 16-20K env steps."""
 CPU_LEARNER_PRESETS = ("cpu-small", "cpu-small-state")
 """Learner presets for two CPU cores: MEA on online successes too, 64 rotated copies of successes."""
 
@@ -73,6 +76,10 @@ class RunConfig:
     """How many times the run was resumed (set by --resume; moves the actors' seed streams on)."""
     actors: int = 1
     """Number of actor processes."""
+    random_steps: int | None = None
+    """Env steps of uniformly random episodes after the demonstrations (the replay's random prefill);
+    None: the learner preset's for the variant (GASv2: 9,000 with paper as the reference, 1,000
+    with cpu-small, 0 with smoke; the Equi-RSAC variants: 0)."""
     demos: int | None = None
     """Scripted demonstrations pre-filled before training; None: the paper's setting for the task
     (2 for the general manipulation tasks, 10 for surgical_grasp_any)."""
@@ -136,6 +143,14 @@ class RunConfig:
             return self.demos
         return 10 if self.task in DSA_TASKS else 2
 
+    def resolved_random_steps(self) -> int:
+        """``random_steps``, else the learner preset's prefill for the variant (``RANDOM_PREFILL``)."""
+        if self.random_steps is not None:
+            return self.random_steps
+        if VARIANTS[self.variant].algorithm != "gasv2":
+            return 0
+        return RANDOM_PREFILL.get(self.learner_preset, 0)
+
     def resolved_mea_on(self) -> str:
         """What the mea variant runs MEA on: ``mea_on``, else the learner preset's default (the CPU
         recipe adds online successes: beyond the two demos, they are the only other layouts)."""
@@ -164,8 +179,10 @@ class RunConfig:
         if VARIANTS[self.variant].algorithm == "gasv2" and self.learner_preset not in GASV2_PRESETS:
             raise ValueError(f"learner preset {self.learner_preset!r} has no gasv2 learner; choose one of "
                              f"{sorted(GASV2_PRESETS)}")  # fmt: skip
-        if self.demos is not None and self.demos < 0:
-            raise ValueError("demos must be >= 0")
+        if (self.demos is not None and self.demos < 0) or (
+            self.random_steps is not None and self.random_steps < 0
+        ):
+            raise ValueError("demos and random_steps must be >= 0")
         if self.env_steps < 0 or min(self.eval_every, self.eval_episodes, self.final_eval_episodes) < 1:
             raise ValueError("env_steps must be >= 0, eval_every, eval_episodes and final_eval_episodes >= 1")
         unknown = set(self.services) - set(SERVICE_ORDER)

@@ -22,6 +22,10 @@ class ActorConfig:
     """Policy source after the demonstrations: expert, random or learned (latest broadcast weights)."""
     demos: int = 0
     """Successful scripted demonstrations to publish first (alternating probe/direct styles)."""
+    random_steps: int = 0
+    """Env steps of uniformly random episodes (the env's own random action) after the
+    demonstrations and before the configured policy: the replay's random prefill (GASv2's reference
+    prefills 9e3 random steps beside its oracle demos). The episode that crosses it runs to its end."""
     expert_style: str = "alternate"
     """Expert style: alternate, probe (touch the fixed object first) or direct."""
     episodes: int = 0
@@ -55,8 +59,8 @@ class ActorConfig:
     def __post_init__(self) -> None:
         if self.task not in TASK_CLASSES:
             raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
-        if self.incarnation < 0:
-            raise ValueError("incarnation must be >= 0")
+        if self.incarnation < 0 or self.random_steps < 0:
+            raise ValueError("incarnation and random_steps must be >= 0")
         if self.unacked_limit < 1 or self.resend_seconds <= 0:
             raise ValueError("unacked_limit must be >= 1 and resend_seconds > 0")
         if self.policy not in POLICIES:

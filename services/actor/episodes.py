@@ -33,6 +33,10 @@ class EpisodeBuilder:
         self.truncated.append(bool(truncated))
 
     @property
+    def num_steps(self) -> int:
+        return len(self.actions)
+
+    @property
     def success(self) -> bool:
         return succeeded(self.terminated, self.rewards)
 

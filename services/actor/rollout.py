@@ -84,6 +84,7 @@ class Actor:
         self.instance = instance
         self.env = env or make_env(cfg.task, cfg.env_settings())
         self.counter = 0
+        self.prefilled = 0  # env steps of the random prefill done
         self.rng = np.random.default_rng([cfg.seed_base, cfg.index, 17])
 
     def next_seed(self) -> int:
@@ -126,7 +127,12 @@ class Actor:
                            getattr(policy, "executed", None))  # fmt: skip
 
     def policy_episode(self, k: int, policy=None, on_step=None) -> EpisodeBuilder:
-        """Episode k after the demonstrations, with the configured policy source."""
+        """Episode k after the demonstrations: a random one while the random prefill
+        (``random_steps``) is not done, then the configured policy source."""
+        if self.prefilled < self.cfg.random_steps:
+            b = self.random_episode(on_step)
+            self.prefilled += b.num_steps
+            return b
         if self.cfg.policy == "expert":
             return self.expert_episode(k, on_step)
         if self.cfg.policy == "learned":
