@@ -85,8 +85,9 @@ def record_update(mx: dict[str, Any], info: dict[str, float], seconds: float, ra
     mx["updates"].inc()
     mx["update_seconds"].observe(seconds)
     for name in LOSSES:
-        if f"{name}_loss" in info:
-            mx["loss"].labels(name).set(info[f"{name}_loss"])
+        value = info.get(f"{name}_loss", info.get(name) if name == "kl" else None)  # GASv2 reports "kl"
+        if value is not None:
+            mx["loss"].labels(name).set(value)
     mx["batch_demo_share"].set(info["batch_demo_share"])
     mx["batch_reward_transitions"].set(info["batch_reward_transitions"])
     if "alpha" in info:  # SAC only
