@@ -114,8 +114,11 @@ class LearnerConfig:
             raise ValueError(f"algorithm must be one of {ALGORITHMS}, not {self.algorithm!r}")
         if self.algorithm == "rsac" and self.net.group != "none":  # the twin: same widths, plain layers
             object.__setattr__(self, "net", dataclasses.replace(self.net, group="none"))
-        if (self.algorithm == "gasv2") != (self.observation == "dsa"):
-            raise ValueError("the gasv2 learner observes dsa (the surgical DSA image), and only it does")
+        if self.algorithm == "gasv2" and self.observation != "dsa":
+            raise ValueError("--algorithm gasv2 starts from a gasv2 preset (--preset gasv2, gasv2-cpu-small or "
+                             "gasv2-smoke): it observes dsa, the surgical DSA image, in windows of its own")  # fmt: skip
+        if self.observation == "dsa" and self.algorithm != "gasv2":
+            raise ValueError("observation dsa (the surgical DSA image) is the gasv2 learner's only")
         if self.algorithm == "equi_rsac" and self.net.group == "none":
             raise ValueError("equi_rsac needs --net.group c4 or d4 (the plain twin is --algorithm rsac)")
         if self.observation not in OBSERVATIONS:

@@ -115,6 +115,10 @@ def test_only_the_gasv2_learner_leaves_the_cpu():
 
     with pytest.raises(ValueError, match="only the gasv2 learner"):
         LearnerConfig(device="cuda")
+    with pytest.raises(ValueError, match="starts from a gasv2 preset"):
+        LearnerConfig(algorithm="gasv2")  # the SAC paper preset's fields do not fit its windows
+    with pytest.raises(ValueError, match="gasv2 learner's only"):
+        LearnerConfig(observation="dsa")
     trainer = build_trainer(dataclasses.replace(PRESETS["gasv2-smoke"], device="cpu"))
     assert str(trainer.agent.device) == "cpu" and set(trainer.policy_tensors()) == set(
         trainer.agent.policy.state_dict()
