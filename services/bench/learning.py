@@ -67,8 +67,9 @@ SURGICAL_PRESETS: dict[str, dict[str, Any]] = {
               "final_eval_episodes": 20, "demos": 10},
 }  # fmt: skip
 """Surgical Grasp Any's settings per preset (the learner preset as ``PRESETS``). paper: the paper's
-Sec. VI (10 demos, 420K env steps, 20 evaluation rollouts every 10K, 3 seeds). cpu-small: the budget
-two runs fit in about two hours on two CPU cores (README, "Surgical Grasp Any")."""
+Sec. VI (10 demos, 420K env steps, 20 evaluation rollouts every 10K, 3 seeds). cpu-small: what two
+runs fit in under two hours on two CPU cores (16K env steps took 40 minutes per run here, with
+seven evaluations of 20 episodes that mostly run to the 80-step limit; README, "Benchmarks")."""
 
 PUBLIC_TRAINING_ENV_STEPS_PER_SECOND = (0.065, 1.0 / PUBLIC_UPDATE_SECONDS)
 """The public Equi-RSAC training loop on a 2-core CPU, env steps/s: one 11.1 s update per env step
