@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import threading
 from contextlib import AbstractContextManager
 from pathlib import Path
 
 import numpy as np
 
 from proto.episode import Augmentation, Episode
+from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.learner.config import LearnerConfig, build_trainer
 from services.learner.core.networks import NetConfig
@@ -100,3 +102,21 @@ def learner_child(endpoint: str, run_dir: str, resume: bool, instance: str) -> N
                             log_format="text", heartbeat_seconds=0.2)  # fmt: skip
     cfg = tiny_learner_config(Path(run_dir), service, resume=resume, checkpoint_every=5, error_buffer=40.0)
     sys.exit(run(cfg))
+
+
+def start_learner(
+    cfg: LearnerConfig, hub: Hub, observer: InProcBus, timeout: float = 60.0
+) -> tuple[threading.Thread, dict]:
+    """Run the learner service on ``hub`` in a thread; return once ``observer`` sees it alive. The
+    thread's exit code lands in the dict under "rc"."""
+    from services.learner.main import run
+
+    watch = observer.watch_alive("learner")
+    result: dict = {}
+    thread = threading.Thread(
+        target=lambda: result.setdefault("rc", run(cfg, bus_factory=lambda _c: InProcBus(hub))), daemon=True
+    )
+    thread.start()
+    instance = cfg.service.instance_id
+    assert watch.wait_for(lambda alive: ("learner", instance) in alive, timeout=timeout)
+    return thread, result

@@ -6,8 +6,6 @@ policy (encoder, RSSM, actor) acting through the consumers' PolicyRuntime."""
 from __future__ import annotations
 
 import dataclasses
-import threading
-import time
 
 import numpy as np
 import pytest
@@ -21,8 +19,7 @@ from services.common.weights import WeightsClient
 from services.learner import checkpoint
 from services.learner.config import PRESETS
 from services.learner.core.policy import PolicyRuntime
-from services.learner.main import run
-from tests.helpers.learner import learner_episode
+from tests.helpers.learner import learner_episode, start_learner
 
 pytestmark = pytest.mark.integration
 DISCRETE = {tuple(to_vector(i, jaw)) for i in range(len(NAMES)) for jaw in (True, False)}
@@ -37,27 +34,6 @@ def config(tmp_path, **kw):
                                checkpoint_minutes=0.0, service=svc(), **kw)  # fmt: skip
 
 
-def start(cfg, hub: Hub, observer: InProcBus) -> tuple[threading.Thread, dict]:
-    watch = observer.watch_alive("learner")
-    result: dict = {}
-    thread = threading.Thread(
-        target=lambda: result.setdefault("rc", run(cfg, bus_factory=lambda _c: InProcBus(hub))), daemon=True
-    )
-    thread.start()
-    assert watch.wait_for(lambda alive: ("learner", "learner-g") in alive, timeout=60)
-    return thread, result
-
-
-def wait_for(pred, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 def test_gasv2_learner_trains_publishes_a_latent_policy_and_resumes_its_lineage(tmp_path):
     rng = np.random.default_rng(0)
     cfg = config(tmp_path, min_steps=40, samples_per_insert=0.25, error_buffer=2.0, max_updates=6)
@@ -65,10 +41,10 @@ def test_gasv2_learner_trains_publishes_a_latent_policy_and_resumes_its_lineage(
     observer = InProcBus(hub)
     announces = observer.subscribe(WEIGHTS_ANNOUNCE, capacity=256)
     status = observer.subscribe(STATUS, capacity=1024, service="learner")
-    thread, result = start(cfg, hub, observer)
+    thread, result = start_learner(cfg, hub, observer)
 
-    first = wait_for(lambda: announces.drain(), 30, "version 0")
-    assert first[0].message.version == 0 and first[0].message.algorithm == "gasv2"
+    v0 = announces.recv(timeout=30)
+    assert v0 is not None and v0.message.version == 0 and v0.message.algorithm == "gasv2"
     client = WeightsClient(observer, timeout=10.0)
     blob = client.poll()
     policy = PolicyRuntime(deterministic=False, seed=1)
@@ -90,7 +66,7 @@ def test_gasv2_learner_trains_publishes_a_latent_policy_and_resumes_its_lineage(
     assert last["updates"] == 6 and last["rejected"] == 1 and last["env_steps"] == 120
     for key in ("model_loss", "image_loss", "reward_loss", "critic_loss", "actor_loss"):
         assert np.isfinite(last[key]), key
-    versions = [d.message.version for d in first[1:] + announces.drain()]
+    versions = [d.message.version for d in announces.drain()]
     assert versions == sorted(set(versions)) and max(versions) >= 3  # publish_every 2
     assert checkpoint.exists(tmp_path / "checkpoints")
 
@@ -100,7 +76,7 @@ def test_gasv2_learner_trains_publishes_a_latent_policy_and_resumes_its_lineage(
     observer2 = InProcBus(hub2)
     announces2 = observer2.subscribe(WEIGHTS_ANNOUNCE, capacity=256)
     status2 = observer2.subscribe(STATUS, capacity=1024, service="learner")
-    thread2, result2 = start(cfg2, hub2, observer2)
+    thread2, result2 = start_learner(cfg2, hub2, observer2)
     thread2.join(timeout=300)
     assert not thread2.is_alive() and result2["rc"] == 0
     after = [d.message.counters for d in status2.drain()][-1]

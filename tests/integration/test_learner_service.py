@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import threading
 import time
 
 import numpy as np
@@ -15,8 +14,7 @@ from services.common.config import ServiceConfig
 from services.common.weights import WeightsClient
 from services.learner import checkpoint
 from services.learner.core.policy import PolicyRuntime
-from services.learner.main import run
-from tests.helpers.learner import SIZE, TINY_NET, learner_episode, tiny_learner_config
+from tests.helpers.learner import SIZE, TINY_NET, learner_episode, start_learner, tiny_learner_config
 
 pytestmark = pytest.mark.integration
 
@@ -33,19 +31,6 @@ def wait_for(pred, timeout: float, what: str):
             return value
         time.sleep(0.02)
     raise AssertionError(f"timed out waiting for {what}")
-
-
-def start_learner(cfg, hub: Hub, observer: InProcBus) -> tuple[threading.Thread, dict]:
-    """Run the learner on ``hub`` in a thread; return once ``observer`` sees it alive. The thread's
-    exit code lands in the dict under "rc"."""
-    watch = observer.watch_alive("learner")
-    result: dict = {}
-    thread = threading.Thread(
-        target=lambda: result.setdefault("rc", run(cfg, bus_factory=lambda _c: InProcBus(hub))), daemon=True
-    )
-    thread.start()
-    assert watch.wait_for(lambda alive: ("learner", "learner-t") in alive, timeout=30)
-    return thread, result
 
 
 def test_learner_respects_the_ratio_publishes_versions_and_survives_bad_input(tmp_path):
