@@ -65,18 +65,24 @@ class SequenceReplay(ReplayStorage):
         were drawn from it. ``trim`` pads to the longest sampled episode instead of ``seq_len`` (the losses are
         masked and the LSTM causal, so padding past the longest episode changes nothing but the cost).
         """
+        rng = self._rng if rng is None else rng
+        slots = self._draw_episodes(batch_size, rng, demo_fraction, successes_as_demos)
+        return self._gather(slots, trim, successes_as_demos)
+
+    def _draw_episodes(
+        self, batch_size: int, rng: np.random.Generator, demo_fraction: float, successes_as_demos: bool
+    ) -> np.ndarray:
+        """Table slots of ``batch_size`` stored episodes drawn with replacement, uniformly or with the
+        demonstration split (``sample``'s draw; ValueError for a bad size or share, or an empty replay)."""
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         if not 0.0 <= demo_fraction <= 1.0:
             raise ValueError(f"demo_fraction must be in [0, 1], got {demo_fraction}")
         if self._n == 0:
             raise ValueError("cannot sample from an empty replay")
-        rng = self._rng if rng is None else rng
         if demo_fraction == 0.0:
-            slots = self._order[rng.integers(0, self._n, size=batch_size)]
-        else:
-            slots = self._sample_split(batch_size, rng, demo_fraction, successes_as_demos)
-        return self._gather(slots, trim, successes_as_demos)
+            return self._order[rng.integers(0, self._n, size=batch_size)]
+        return self._sample_split(batch_size, rng, demo_fraction, successes_as_demos)
 
     def _in_demo_set(self, slots: np.ndarray, successes_as_demos: bool) -> np.ndarray:
         demo = self._ep_demo[slots]

@@ -101,6 +101,10 @@ def to_chunk_batch(sample: ChunkSample, device: torch.device | str = "cpu") -> C
     return ChunkBatch(**out)
 
 
+_FIXED = {"constant_channels": (), "channels": CHANNELS, "state_dim": STATE_DIM}
+"""What every ``ChunkReplay`` stores besides its sizes: 3 image channels, none constant, controller_state."""
+
+
 class ChunkReplay(SequenceReplay):
     """``SequenceReplay`` of Surgical Grasp Any episodes that samples DreamerV2 windows (module docstring).
 
@@ -124,11 +128,9 @@ class ChunkReplay(SequenceReplay):
             capacity_transitions,
             image_size=image_size,
             seq_len=seq_len,
-            constant_channels=(),
-            channels=CHANNELS,
             max_episodes=max_episodes,
             seed=seed,
-            state_dim=STATE_DIM,
+            **_FIXED,
         )
 
     @classmethod
@@ -141,13 +143,7 @@ class ChunkReplay(SequenceReplay):
     ) -> int:
         """Bytes such a buffer's arrays reserve, computed without allocating (equals ``nbytes``)."""
         return SequenceReplay.reserved_bytes(
-            capacity_transitions,
-            image_size=image_size,
-            seq_len=seq_len,
-            constant_channels=(),
-            channels=CHANNELS,
-            max_episodes=max_episodes,
-            state_dim=STATE_DIM,
+            capacity_transitions, image_size=image_size, seq_len=seq_len, max_episodes=max_episodes, **_FIXED
         )
 
     @classmethod
@@ -192,19 +188,10 @@ class ChunkReplay(SequenceReplay):
         with replacement as ``SequenceReplay.sample`` draws them (same arguments, same draws from
         ``rng``), then each window's start uniform in ``[0, max(0, T + 1 - length)]`` from ``rng``.
         """
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         if int(length) != length or not 1 <= length <= self.seq_len + 1:
             raise ValueError(f"length must be an integer in [1, {self.seq_len + 1}], got {length}")
-        if not 0.0 <= demo_fraction <= 1.0:
-            raise ValueError(f"demo_fraction must be in [0, 1], got {demo_fraction}")
-        if self._n == 0:
-            raise ValueError("cannot sample from an empty replay")
         rng = self._rng if rng is None else rng
-        if demo_fraction == 0.0:
-            slots = self._order[rng.integers(0, self._n, size=batch_size)]
-        else:
-            slots = self._sample_split(batch_size, rng, demo_fraction, successes_as_demos)
+        slots = self._draw_episodes(batch_size, rng, demo_fraction, successes_as_demos)
         lengths = self._ep_length[slots].astype(np.int64)
         start = rng.integers(0, np.maximum(lengths + 1 - int(length), 0) + 1)  # (B,), inclusive high
         return self._gather_windows(slots, lengths, start, int(length), successes_as_demos)
