@@ -203,8 +203,8 @@ PRESETS["cpu-small-state"] = dataclasses.replace(
 # GASv2 on Surgical Grasp Any (the reference's training settings, tasks-and-baselines.md section 5):
 # windows of 6 observations, 100 per update, one update per 2 env steps (`train_every` 2), replay
 # 5e5 transitions, episodes of at most 80 steps; demos and their MEA copies are pinned in replay.
-# The reference prefills 9e3 random steps before training; here actors act with the initial policy
-# (a near-uniform categorical over the nine actions) until min_steps env steps are in.
+# The reference's 9e3 random prefill steps are the actors' (`mea run --random-steps`); training
+# starts once min_steps env steps are in.
 PRESETS["gasv2"] = LearnerConfig(
     algorithm="gasv2",
     observation="dsa",
@@ -218,7 +218,7 @@ PRESETS["gasv2"] = LearnerConfig(
     error_buffer=200.0,
     publish_every=10,
 )
-# gasv2-cpu-small: two CPU cores and about an hour per run (README, "Presets"): the world model's
+# gasv2-cpu-small: two CPU cores (16K env steps in about 40 minutes; README, "The learner (GASv2)"): the world model's
 # cpu-small widths (gasv2/config.py), 16 windows per update instead of 100, training from 500 env
 # steps, and the demo-aware sampling of the cpu-small SAC recipe (half of every batch from the demos,
 # their copies and online successes); everything else as gasv2.

@@ -19,7 +19,7 @@ Storage
 
 Network input
     ``decode``: codes as float32 times ``float32(INPUT_SCALE)`` (1/255), in [0, 1]. The torch side
-    (``services.learner.core.policy.images_from_codes``) multiplies by the same constant, bit for bit.
+    (``services.learner.core.tensors.images_from_codes``) multiplies by the same constant, bit for bit.
 """
 
 from __future__ import annotations

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from services.learner.core.policy import images_from_codes
 from services.learner.core.replay_batch import SequenceBatch
 from services.learner.core.sac import Batch
+from services.learner.core.tensors import images_from_codes
 
 
 def to_batch(sample: SequenceBatch, device: torch.device | str = "cpu") -> Batch:

@@ -23,17 +23,11 @@ from proto.weights import WeightsBlob
 from services.learner.core.gasv2.policy import GasV2Spec, LatentRuntime
 from services.learner.core.networks import Actor, NetConfig, build_actor
 from services.learner.core.sac import deterministic_action, tanh_gaussian_sample
-from services.observation.image_format import INPUT_SCALE
+from services.learner.core.tensors import fitting_state, images_from_codes
 
 OBSERVATIONS = ("voxel", "depth", "dsa")
 """`voxel`: the voxel orthographic projection (EquiObs, MEA); `depth`: the rendered depth image
 (Equi-RSAC); `dsa`: the surgical task's own DSA image (GASv2; ``services.observation.dsa``)."""
-
-
-def images_from_codes(codes: torch.Tensor) -> torch.Tensor:
-    """uint8 codes (..., C, H, W) -> float32 network input in [0, 1]: ``image_format.decode`` done by
-    torch (on the codes' device), bit for bit."""
-    return codes.to(torch.float32).mul_(INPUT_SCALE)
 
 
 @dataclass(frozen=True)
@@ -83,8 +77,8 @@ def blob_observation(blob: WeightsBlob) -> str:
     return PolicySpec.from_json(blob.config_json).observation
 
 
-def actor_tensors(actor: Actor) -> dict[str, np.ndarray]:
-    """The actor's parameters and buffers as numpy arrays (what a WeightsBlob carries)."""
+def actor_tensors(actor: torch.nn.Module) -> dict[str, np.ndarray]:
+    """A policy's parameters and buffers as numpy arrays (what a WeightsBlob carries)."""
     return {k: v.detach().cpu().numpy().copy() for k, v in actor.state_dict().items()}
 
 
@@ -113,16 +107,7 @@ class PolicyRuntime:
             return
         spec = PolicySpec.from_json(blob.config_json)
         actor = self.actor if spec == self.spec and self.actor is not None else build_actor(spec.net)
-        state = {k: torch.from_numpy(np.array(v)) for k, v in blob.tensors.items()}
-        # check every name and shape first: load_state_dict copies the tensors that fit before it
-        # raises on those that do not, which would leave the running policy half-overwritten
-        expected = {k: tuple(v.shape) for k, v in actor.state_dict().items()}
-        got = {k: tuple(v.shape) for k, v in state.items()}
-        if got != expected:
-            wrong = sorted(k for k in expected.keys() | got.keys() if expected.get(k) != got.get(k))
-            raise ValueError(f"weights v{blob.version} do not fit the network: {len(wrong)} tensors differ "
-                             f"(e.g. {wrong[:3]})")  # fmt: skip
-        actor.load_state_dict(state, strict=True)
+        actor.load_state_dict(fitting_state(actor, blob.tensors, blob.version), strict=True)
         actor.eval()
         self.actor, self.spec, self.version, self._latent = actor, spec, blob.version, None
 

@@ -33,6 +33,7 @@ import torch
 from services.learner.core.gasv2.action_features import features
 from services.learner.core.gasv2.chunks import ChunkBatch
 from services.learner.core.replay import SequenceReplay
+from services.learner.core.tensors import images_from_codes
 from services.observation.dsa import STATE_ROW, decode_state_rows
 
 if TYPE_CHECKING:
@@ -90,10 +91,7 @@ _BATCH_FIELDS = tuple(f.name for f in dataclasses.fields(ChunkBatch))
 
 def to_chunk_batch(sample: ChunkSample, device: torch.device | str = "cpu") -> ChunkBatch:
     """The torch batch on ``device``; images move as uint8 and become float32 there
-    (``policy.images_from_codes``, bit for bit ``image_format.decode``)."""
-    # imported here: services.learner.core.policy imports the GASv2 policy modules
-    from services.learner.core.policy import images_from_codes
-
+    (``tensors.images_from_codes``, bit for bit ``image_format.decode``)."""
     out: dict[str, torch.Tensor] = {}
     for name in _BATCH_FIELDS:
         out[name] = torch.from_numpy(getattr(sample, name)).to(device)

@@ -28,7 +28,7 @@ from torch import Tensor
 @dataclass(frozen=True)
 class ChunkBatch:
     images: Tensor
-    """float32 (B, L, 3, H, W) in [0, 1]: uint8 DSA codes x 1/255 (``policy.images_from_codes``)."""
+    """float32 (B, L, 3, H, W) in [0, 1]: uint8 DSA codes x 1/255 (``tensors.images_from_codes``)."""
     actions: Tensor
     """float32 (B, L, 5): feature of the action into observation t (0 where ``is_first``)."""
     rewards: Tensor

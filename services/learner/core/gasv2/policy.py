@@ -26,7 +26,7 @@ from proto.weights import WeightsBlob
 from services.learner.core.gasv2.action_features import FEATURE_DIM, features
 from services.learner.core.gasv2.agent import LatentPolicy, build_policy
 from services.learner.core.gasv2.config import DreamerConfig
-from services.observation.image_format import INPUT_SCALE
+from services.learner.core.tensors import fitting_state, images_from_codes
 
 OBSERVATION = "dsa"
 """GASv2 observes the env's DSA image (Surgical Grasp Any: 3 x 64 x 64 uint8)."""
@@ -58,22 +58,6 @@ class GasV2Spec:
         return spec
 
 
-def check_tensors(
-    module: torch.nn.Module, tensors: dict[str, np.ndarray], version: int
-) -> dict[str, torch.Tensor]:
-    """``tensors`` as torch tensors if every name and shape fits ``module`` (ValueError otherwise):
-    checked before loading, since ``load_state_dict`` copies what fits before it raises."""
-    state = {k: torch.from_numpy(np.array(v)) for k, v in tensors.items()}
-    expected = {k: tuple(v.shape) for k, v in module.state_dict().items()}
-    got = {k: tuple(v.shape) for k, v in state.items()}
-    if got != expected:
-        wrong = sorted(k for k in expected.keys() | got.keys() if expected.get(k) != got.get(k))
-        raise ValueError(
-            f"weights v{version} do not fit the network: {len(wrong)} tensors differ (e.g. {wrong[:3]})"
-        )
-    return state
-
-
 class LatentRuntime:
     """One GASv2 policy, stepped one observation at a time (see the module docstring)."""
 
@@ -87,7 +71,7 @@ class LatentRuntime:
     def load(self, blob: WeightsBlob) -> None:
         spec = GasV2Spec.from_json(blob.config_json)
         policy = self.policy if spec == self.spec and self.policy is not None else build_policy(spec.dreamer)
-        policy.load_state_dict(check_tensors(policy, blob.tensors, blob.version), strict=True)
+        policy.load_state_dict(fitting_state(policy, blob.tensors, blob.version), strict=True)
         policy.eval()
         self.policy, self.spec = policy, spec
 
@@ -119,7 +103,7 @@ class LatentRuntime:
         self._advance()
         if self._state is None:
             self._state = self.policy.initial_state(1)
-        x = torch.from_numpy(np.ascontiguousarray(image_codes))[None].to(torch.float32).mul_(INPUT_SCALE)
+        x = images_from_codes(torch.from_numpy(np.ascontiguousarray(image_codes))[None])
         first = torch.tensor([self._first])
         logits, self._state = self.policy.step(
             self._state, self._prev_feature, x, first, generator=self.generator

@@ -13,6 +13,7 @@ import numpy as np
 
 from services.learner.core.gasv2.agent import GasV2Agent
 from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
+from services.learner.core.policy import actor_tensors
 from services.learner.core.rate_limiter import RateLimiter
 from services.learner.core.trainer import Trainer, TrainerSettings
 
@@ -39,7 +40,7 @@ class GasV2Trainer(Trainer):
 
     def policy_tensors(self) -> dict[str, np.ndarray]:
         """The published part: the latent policy (encoder, RSSM, actor), not the decoder, heads or critic."""
-        return {k: v.detach().cpu().numpy().copy() for k, v in self.gasv2.policy.state_dict().items()}
+        return actor_tensors(self.gasv2.policy)
 
     def insert(self, ep: Episode) -> None:
         """Store ``ep``; ValueError (replay and limiter unchanged) if the window replay refuses it."""
