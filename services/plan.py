@@ -97,19 +97,16 @@ def augmenter_config(run: RunConfig, service: ServiceConfig) -> AugmenterConfig:
 
 
 def learner_preset(run: RunConfig) -> str:
-    """The learner preset of the run: ``learner_preset`` itself for the Equi-RSAC variants, its GASv2
-    counterpart (``GASV2_PRESETS``) for the GASv2 ones; ValueError naming the choices otherwise."""
-    gasv2 = variant(run.variant).algorithm == "gasv2"
-    name = GASV2_PRESETS.get(run.learner_preset, "") if gasv2 else run.learner_preset
-    if name not in LEARNER_PRESETS or (not gasv2 and name.startswith("gasv2")):
-        choices = (
-            sorted(GASV2_PRESETS)
-            if gasv2
-            else sorted(k for k in LEARNER_PRESETS if not k.startswith("gasv2"))
-        )
+    """The learner preset of the run: its GASv2 counterpart (``GASV2_PRESETS``; ``RunConfig`` checked
+    that there is one) for the GASv2 variants, ``learner_preset`` itself for the Equi-RSAC ones
+    (ValueError naming the choices if it is not one of theirs)."""
+    if variant(run.variant).algorithm == "gasv2":
+        return GASV2_PRESETS[run.learner_preset]
+    sac = sorted(k for k, c in LEARNER_PRESETS.items() if c.algorithm != "gasv2")
+    if run.learner_preset not in sac:
         raise ValueError(f"learner preset {run.learner_preset!r} has no {variant(run.variant).algorithm} "
-                         f"learner; choose one of {choices}")  # fmt: skip
-    return name
+                         f"learner; choose one of {sac}")  # fmt: skip
+    return run.learner_preset
 
 
 def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any:
