@@ -107,24 +107,25 @@ class Trainer:
 
     def __init__(
         self,
-        sac: RecurrentSAC,
+        agent: RecurrentSAC,
         replay: SequenceReplay,
         limiter: RateLimiter,
         rng: np.random.Generator,
         settings: TrainerSettings,
         guard: AbstractContextManager[object] | None = None,
     ) -> None:
-        self.sac, self.replay, self.limiter, self.rng, self.settings = sac, replay, limiter, rng, settings
+        # what learns: its ``update`` trains, its ``state_dict`` is the checkpoint's learner part and
+        # ``updates`` its count (subclasses hold another algorithm's agent here)
+        self.agent, self.replay, self.limiter, self.rng, self.settings = agent, replay, limiter, rng, settings
         self.guard = guard if guard is not None else nullcontext()
 
     @property
-    def agent(self) -> RecurrentSAC:
-        """What learns: its ``state_dict`` is the checkpoint's learner part, ``updates`` its count."""
-        return self.sac
+    def sac(self) -> RecurrentSAC:
+        return self.agent
 
     def policy_tensors(self) -> dict[str, np.ndarray]:
         """The published part (a WeightsBlob's tensors): the actor's parameters and buffers."""
-        return actor_tensors(self.sac.actor)
+        return actor_tensors(self.agent.actor)
 
     @property
     def env_steps(self) -> int:
@@ -133,7 +134,7 @@ class Trainer:
 
     @property
     def updates(self) -> int:
-        return self.sac.updates
+        return self.agent.updates
 
     def insert(self, ep: Episode) -> None:
         """Store ``ep``; a raw episode's steps count as env steps for the limiter.
@@ -156,7 +157,7 @@ class Trainer:
                 can_sample=self.limiter.can_sample(),
                 replay_transitions=len(self.replay),
                 replay_episodes=self.replay.num_episodes,
-                updates=self.sac.updates,
+                updates=self.agent.updates,
             )
 
     def step(self) -> dict[str, float] | None:
@@ -178,7 +179,7 @@ class Trainer:
             )
         if sample is None:
             return None
-        info = self.sac.update(to_batch(sample))
+        info = self.agent.update(to_batch(sample))
         info["batch_demo_share"] = float(sample.from_demo_set.mean())
         info["batch_reward_transitions"] = float((sample.rewards > 0).sum())
         with self.guard:
@@ -187,7 +188,7 @@ class Trainer:
 
     def publish_due(self) -> bool:
         """Whether the update just done completes a ``publish_every`` period."""
-        return self.sac.updates % self.settings.publish_every == 0
+        return self.agent.updates % self.settings.publish_every == 0
 
     def done(self) -> bool:
-        return self.settings.max_updates > 0 and self.sac.updates >= self.settings.max_updates
+        return self.settings.max_updates > 0 and self.agent.updates >= self.settings.max_updates

@@ -24,6 +24,8 @@ if TYPE_CHECKING:
 class GasV2Trainer(Trainer):
     """A ``Trainer`` whose agent is GASv2 and whose replay hands out windows."""
 
+    agent: GasV2Agent  # type: ignore[assignment]
+
     def __init__(
         self,
         agent: GasV2Agent,
@@ -34,13 +36,12 @@ class GasV2Trainer(Trainer):
         chunk_length: int,
         guard: AbstractContextManager[object] | None = None,
     ) -> None:
-        # the base class keeps the agent as ``sac`` (its updates count, checkpoint state, publish period)
         super().__init__(agent, replay, limiter, rng, settings, guard)  # type: ignore[arg-type]
-        self.gasv2, self.chunk_length = agent, chunk_length
+        self.chunk_length = chunk_length
 
     def policy_tensors(self) -> dict[str, np.ndarray]:
         """The published part: the latent policy (encoder, RSSM, actor), not the decoder, heads or critic."""
-        return actor_tensors(self.gasv2.policy)
+        return actor_tensors(self.agent.policy)
 
     def insert(self, ep: Episode) -> None:
         """Store ``ep``; ValueError (replay and limiter unchanged) if the window replay refuses it."""
@@ -66,7 +67,7 @@ class GasV2Trainer(Trainer):
             )
         if sample is None:
             return None
-        info = self.gasv2.update(to_chunk_batch(sample, self.gasv2.device))
+        info = self.agent.update(to_chunk_batch(sample, self.agent.device))
         info["batch_demo_share"] = float(np.mean(sample.demo))
         info["batch_reward_transitions"] = float((sample.rewards > 0).sum())
         with self.guard:
