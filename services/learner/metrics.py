@@ -8,9 +8,13 @@ from typing import Any
 from services.common.metrics import ServiceMetrics
 from services.learner.core.trainer import GateReading
 
-LOSSES = ("critic", "actor", "alpha", "bc", "model", "image", "reward", "discount", "kl")
-"""``mea_learner_loss{loss}`` labels: SAC's (critic, actor, alpha, bc) and GASv2's (its world model's
-model, image, reward, discount and kl terms; its actor and critic)."""
+LOSSES = {
+    name: f"{name}_loss"
+    for name in ("critic", "actor", "alpha", "bc", "model", "image", "reward", "discount")
+}
+LOSSES["kl"] = "kl"
+"""``mea_learner_loss{loss}`` label -> the update info's key: SAC's (critic, actor, alpha, bc) and
+GASv2's (its world model's model, image, reward and discount terms and its KL; its actor and critic)."""
 RATE_WINDOW_SECONDS = 30.0
 """``mea_learner_updates_per_second`` counts the updates of this many recent seconds."""
 
@@ -84,10 +88,9 @@ def record_update(mx: dict[str, Any], info: dict[str, float], seconds: float, ra
     """One update's wall time, losses and statistics (``Trainer.step``'s info) and the recent rate."""
     mx["updates"].inc()
     mx["update_seconds"].observe(seconds)
-    for name in LOSSES:
-        value = info.get(f"{name}_loss", info.get(name) if name == "kl" else None)  # GASv2 reports "kl"
-        if value is not None:
-            mx["loss"].labels(name).set(value)
+    for name, key in LOSSES.items():
+        if key in info:
+            mx["loss"].labels(name).set(info[key])
     mx["batch_demo_share"].set(info["batch_demo_share"])
     mx["batch_reward_transitions"].set(info["batch_reward_transitions"])
     if "alpha" in info:  # SAC only
