@@ -48,7 +48,7 @@ from proto.control import ACK_WINDOW, EpisodeAck
 from proto.episode import Episode
 from proto.topics import EPISODE_ACKS, EPISODES_AUGMENTED, REPLAY_GATE
 from proto.weights import WeightsBlob
-from services.common import config
+from services.common import config, weights_file
 from services.common.bus.base import Bus, Subscription
 from services.common.config import ServiceConfig
 from services.common.runtime import ServiceContext, subscribing_bus_factory
@@ -170,6 +170,9 @@ class Learner:
             self.version, self.cfg.algorithm, self.run_id, self.trainer.policy_tensors(), self.spec.to_json()
         )
         self.server.publish(blob)
+        creds = self.ctx.bus.credentials
+        weights_file.write(self.cfg.run_dir / weights_file.DIRECTORY, blob,
+                           None if creds is None else creds.key, self.ctx.instance)  # fmt: skip
         self.ctx.policy_version = self.version
         self.mx["version"].set(self.version)
         self.mx["publish_seconds"].observe(time.perf_counter() - t0)

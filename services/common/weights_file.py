@@ -1,0 +1,107 @@
+"""Weights on disk: each version the learner announces, as one file a server can be pinned to.
+
+``<run_dir>/weights/weights-<version>.blob`` holds the ``WeightsBlob``'s msgpack encoding, sealed with
+the run's key (``proto.seal``, key expression ``FILE_KEY``, sender ``learner/<instance>``) when the
+run authenticates, plain otherwise. Written to a temporary name, fsynced and renamed, so a reader
+never sees half a file; the newest ``keep`` stay (``services.common.retention.to_delete``).
+
+Reading checks what the bus would check: with the run's key, the seal must verify and name a learner
+(a file sealed by another run, or not sealed at all, is refused); the blob's digest must match its
+tensors (``WeightsBlob`` checks it on decode). Nothing here unpickles.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+from proto.msgpack_wire import DEFAULT_LIMITS, Limits, ProtocolError
+from proto.seal import is_sealed, seal, unseal
+from proto.weights import WeightsBlob
+from services.common import retention
+
+FILE_KEY = "mea/v1/file/weights"
+"""The key expression a weights file is sealed under (it never travels on the bus)."""
+DIRECTORY = "weights"
+NAME = re.compile(r"weights-(\d+)\.blob")
+KEEP = 3
+
+
+class WeightsFileError(ValueError):
+    """A weights file is missing, unreadable, unsigned where a signature is needed, or corrupt."""
+
+
+def file_name(version: int) -> str:
+    return f"weights-{version:08d}.blob"
+
+
+def versions(directory: Path) -> list[tuple[int, Path]]:
+    """The weights files in ``directory``, oldest version first."""
+    if not directory.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in directory.iterdir() if (m := NAME.fullmatch(p.name))]
+    return sorted(found)
+
+
+def write(directory: Path, blob: WeightsBlob, key: bytes | None = None, instance: str = "learner-0",
+          keep: int = KEEP) -> Path:  # fmt: skip
+    """Write ``blob`` as ``directory/weights-<version>.blob`` (sealed when ``key`` is given) and keep the
+    newest ``keep`` files; returns the path."""
+    directory.mkdir(parents=True, exist_ok=True)
+    body = blob.encode()
+    data = body if key is None else seal(key, FILE_KEY, "learner", instance, body)
+    path = directory / file_name(blob.version)
+    tmp = directory / ".weights.blob.tmp"
+    with tmp.open("wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    files = [(p.name, p.stat().st_size) for _, p in versions(directory)]
+    for name in retention.to_delete(files, keep=keep):
+        (directory / name).unlink(missing_ok=True)
+    return path
+
+
+def resolve(path: Path, version: int | None = None) -> Path:
+    """``path`` itself if it is a file; in a directory (a run dir, the learner's dir or its ``weights/``
+    folder), the file of ``version`` or, without one, the newest."""
+    if path.is_file():
+        return path
+    nested = [d for d in (path / DIRECTORY, path / "learner" / DIRECTORY) if d.is_dir()]
+    directory = nested[0] if nested else path
+    found = versions(directory)
+    if not found:
+        raise WeightsFileError(
+            f"{path}: no weights-<version>.blob files (a run dir written by this version of mea?)"
+        )
+    if version is None:
+        return found[-1][1]
+    for v, p in found:
+        if v == version:
+            return p
+    have = ", ".join(str(v) for v, _ in found)
+    raise WeightsFileError(f"{path}: no weights file for version {version} (have {have})")
+
+
+def read(path: Path, key: bytes | None, limits: Limits = DEFAULT_LIMITS) -> WeightsBlob:
+    """The blob in ``path``, checked: with ``key`` its seal must verify and name a learner; its digest
+    must match. ``key`` None reads only unsealed files (a run that did not authenticate)."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise WeightsFileError(f"{path}: cannot read it ({exc.strerror})") from None
+    try:
+        if key is not None:
+            sealed = unseal(key, FILE_KEY, data)
+            if sealed.service != "learner":
+                raise ProtocolError("<sender>", f"written by {sealed.sender}, not a learner")
+            data = sealed.body
+        elif is_sealed(data):
+            raise WeightsFileError(
+                f"{path}: the file is signed; give the run's key to check it (--service.run-key-file)"
+            )
+        return WeightsBlob.decode(data, limits)
+    except ProtocolError as exc:
+        raise WeightsFileError(f"{path}: refused: {exc}") from None
