@@ -8,7 +8,10 @@ from proto.codec import Message
 from proto.episode import TASKS
 from proto.specs import ID_PATTERN, Float, Int, ListOf, MapOf, Str, spec
 
-SERVICES = ("router", "actor", "augmenter", "learner", "evaluator", "inference", "launcher", "bench", "test")
+SERVICES = (
+    "router", "actor", "augmenter", "learner", "evaluator", "inference", "robot", "operator", "launcher", "bench",
+    "test",
+)  # fmt: skip
 STATES = ("starting", "running", "stopping", "failed")
 
 

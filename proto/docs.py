@@ -113,7 +113,8 @@ def _topic_row(t: Topic) -> list[object]:
     return [
         f"`{PREFIX}/<namespace>/{t.path}`",
         t.kind.value,
-        f"`{t.message.TYPE}`" if t.message is not None else "(none: liveliness token)",
+        (f"`{t.request.TYPE}` → " if t.request is not None else "")
+        + (f"`{t.message.TYPE}`" if t.message is not None else "(none: liveliness token)"),
         t.qos.congestion.name,
         t.qos.priority.name,
         "yes" if t.qos.reliable else "no",
@@ -121,6 +122,7 @@ def _topic_row(t: Topic) -> list[object]:
         "newest per key" if t.qos.latest_only else "every message",
         f"{t.max_bytes // (1024 * 1024)} MiB",
         ", ".join(t.writers) if t.writers else ("—" if t.kind is Kind.LIVELINESS else "any (key names it)"),
+        ", ".join(t.requesters) if t.requesters else ("any" if t.kind is Kind.QUERY else "—"),
         t.doc,
     ]
 
@@ -164,7 +166,7 @@ def render_reference() -> str:
         [
             "key expression",
             "kind",
-            "message",
+            "message (request → reply)",
             "congestion",
             "priority",
             "reliable",
@@ -172,6 +174,7 @@ def render_reference() -> str:
             "subscriber keeps",
             "max message",
             "written by (sealed)",
+            "asked by (sealed)",
             "description",
         ],
         [_topic_row(t) for t in TOPICS],

@@ -66,7 +66,7 @@ class Str(Spec):
 
     def describe(self):
         if self.choices:
-            return "str, one of " + ", ".join(f"`{c}`" for c in self.choices)
+            return "str, one of " + ", ".join(f"`{c}`" if c else '`""`' for c in self.choices)
         return f"str matching `{self.pattern}`" if self.pattern else "str"
 
 

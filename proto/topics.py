@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from proto.codec import Message
 from proto.control import EpisodeAck, EvalReport, Heartbeat, ReplayGate
 from proto.episode import Episode
+from proto.inference import ActReply, ActRequest, EStop, ResetReply, ResetRequest
 from proto.specs import ID_PATTERN
 from proto.weights import WeightsAnnouncement, WeightsBlob
 
@@ -68,6 +69,10 @@ class Topic:
     writers: tuple[str, ...] = ()
     """Service kinds whose sealed messages consumers accept on this topic (empty: any service of
     the run). Enforced when the run authenticates its bus (see proto/seal.py)."""
+    request: type[Message] | None = None
+    """QUERY topics whose queries carry a message (as the query's payload): its type."""
+    requesters: tuple[str, ...] = ()
+    """Service kinds whose sealed requests a server accepts (empty: any service of the run)."""
 
     @property
     def placeholders(self) -> tuple[str, ...]:
@@ -161,6 +166,40 @@ ALIVE = Topic(
     "liveliness token held while the instance's session is open",
 )
 
+SERVE_RESET = Topic(
+    "serve_reset",
+    "serve/reset/{source}",
+    Kind.QUERY,
+    ResetReply,
+    QoS(Congestion.BLOCK, Priority.INTERACTIVE_HIGH),
+    "queryable of inference server `source`: a ResetRequest starts an episode of a robot's session",
+    writers=("inference",),
+    request=ResetRequest,
+    requesters=("robot",),
+)
+SERVE_ACT = Topic(
+    "serve_act",
+    "serve/act/{source}",
+    Kind.QUERY,
+    ActReply,
+    QoS(Congestion.BLOCK, Priority.REAL_TIME, express=True),
+    "queryable of inference server `source`: an ActRequest (one observation) is answered with the action",
+    4 * 1024 * 1024,
+    ("inference",),
+    request=ActRequest,
+    requesters=("robot",),
+)
+ESTOP = Topic(
+    "estop",
+    "safety/estop/{source}",
+    Kind.PUBSUB,
+    EStop,
+    QoS(Congestion.BLOCK, Priority.REAL_TIME, express=True, latest_only=True),
+    "emergency stop of operator `source`, republished every second (latched per operator); robots and "
+    "servers hold while any operator's is engaged",
+    writers=("operator",),
+)
+
 TOPICS: tuple[Topic, ...] = (
     EPISODES_RAW,
     EPISODES_AUGMENTED,
@@ -169,6 +208,9 @@ TOPICS: tuple[Topic, ...] = (
     EVAL_REPORTS,
     REPLAY_GATE,
     EPISODE_ACKS,
+    SERVE_RESET,
+    SERVE_ACT,
+    ESTOP,
     STATUS,
     ALIVE,
 )
@@ -237,6 +279,13 @@ def may_write(topic: Topic, parts: dict[str, str], service: str, instance: str) 
         return f"{service}/{instance} may not publish as source {parts['source']}"
     if parts.get("service", service) != service or parts.get("instance", instance) != instance:
         return f"{service}/{instance} may not publish as {parts.get('service')}/{parts.get('instance')}"
+    return None
+
+
+def may_request(topic: Topic, service: str) -> str | None:
+    """Why a sealed request from ``service`` may not be answered on ``topic`` (None when it may)."""
+    if topic.requesters and service not in topic.requesters:
+        return f"{topic.name} answers only {'/'.join(topic.requesters)}, not {service}"
     return None
 
 

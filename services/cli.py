@@ -18,6 +18,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "augmenter": ("services.augmenter.main", "run the MEA augmenter on raw episodes"),
     "learner": ("services.learner.main", "train Equi-RSAC / GASv2 and broadcast weights"),
     "evaluator": ("services.evaluator.main", "evaluate broadcast weights on held-out seeds"),
+    "serve": ("services.inference.main", "serve the newest policy to robots, behind a safety envelope"),
+    "robot": ("services.inference.robot", "drive an arm (--sim: a simulated task) through `mea serve`"),
+    "operator": ("services.inference.operator", "hold the operator's e-stop (robots hold when it goes away)"),
     "plot": (
         "services.evaluator.plot",
         "render learning curves (success vs env steps, mean ± std over seeds) to PNG",

@@ -133,3 +133,69 @@ def test_strings_capped_by_limits() -> None:
     wire["instance_id"] = "a" * 50
     decode(pack(wire), Limits(max_string=50))
     assert field_error(wire, Limits(max_string=49)).field == "Heartbeat.instance_id"
+
+
+@pytest.mark.parametrize(
+    ("type_name", "name", "bad"),
+    [
+        ("ResetRequest", "session", "robot 0"),
+        ("ResetRequest", "task", "juggle"),
+        ("ResetReply", "observation", "rgb"),
+        ("ResetReply", "episode", -1),
+        ("ResetReply", "policy_version", -2),
+        ("ActRequest", "episode", 0),
+        ("ActRequest", "step", 1_000_001),
+        ("ActRequest", "stamp", -1.0),
+        ("ActRequest", "state", np.zeros(4, np.float32)),
+        ("ActRequest", "state", np.zeros(5, np.float64)),
+        ("ActRequest", "executed", np.zeros((1, 5), np.float32)),
+        ("ActReply", "action", np.array([0, 0, 0, 0, 1.5], np.float32)),
+        ("ActReply", "action", np.array([0, 0, 0, 0, np.nan], np.float32)),
+        ("ActReply", "reasons", ["Estop"]),
+        ("ActReply", "reasons", ["estop"] * 17),
+        ("ActReply", "compute_seconds", -0.1),
+        ("EStop", "operator_id", ""),
+        ("EStop", "reason", "x" * 257),
+    ],
+)
+def test_out_of_range_serving_values(type_name: str, name: str, bad: Any) -> None:
+    wire = wire_of(sample(type_name))
+    wire[name] = bad
+    assert names(field_error(wire), f"{type_name}.{name}")
+
+
+def _act_wire(**obs: Any) -> dict[str, Any]:
+    wire = {"_type": "ActRequest", "_v": 1, "session": "robot-0", "episode": 1, "step": 0, "stamp": 0.0,
+            "state": np.zeros(5, np.float32)}  # fmt: skip
+    return {**wire, **obs}
+
+
+@pytest.mark.parametrize(
+    ("obs", "field"),
+    [
+        ({}, "image"),  # no observation
+        (
+            {
+                "points": np.zeros((2, 4, 3), np.float32),
+                "point_counts": np.zeros(2, np.int32),
+                "image": np.zeros((2, 8, 8), np.uint8),
+            },
+            "image",
+        ),  # both
+        ({"points": np.zeros((2, 4, 3), np.float32)}, "points"),  # points without their counts
+        ({"point_counts": np.zeros(2, np.int32), "image": np.zeros((2, 8, 8), np.uint8)}, "points"),
+        ({"points": np.zeros((2, 4, 3), np.float32), "point_counts": np.zeros(3, np.int32)}, "point_counts"),
+    ],
+    ids=["none", "both", "points-alone", "counts-alone", "counts-mismatch"],
+)
+def test_act_request_carries_exactly_one_observation(obs: dict[str, Any], field: str) -> None:
+    err = field_error(_act_wire(**obs))
+    assert err.field == f"ActRequest.{field}", err
+
+
+def test_act_request_observations_that_decode() -> None:
+    points = {"points": np.zeros((2, 4, 3), np.float32), "point_counts": np.zeros(2, np.int32)}
+    assert decode(pack(_act_wire(**points))).image is None
+    assert decode(pack(_act_wire(image=np.zeros((2, 84, 84), np.uint8), points=None))).points is None
+    nan_state = _act_wire(image=np.zeros((3, 64, 64), np.uint8), state=np.full(5, np.nan, np.float32))
+    assert np.isnan(decode(pack(nan_state)).state).all()  # not range-checked: the server answers with a hold

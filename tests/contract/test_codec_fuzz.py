@@ -25,6 +25,7 @@ from hypothesis import strategies as st
 from proto.codec import Message, decode
 from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
+from proto.inference import ActReply, ActRequest, EStop, ResetReply, ResetRequest
 from proto.msgpack_wire import EXT_NDARRAY, ProtocolError, pack
 from proto.weights import WeightsBlob
 
@@ -134,6 +135,20 @@ def seed_messages() -> list[Message]:
             created_at=4.0,
         )
     )
+    out.append(ResetRequest(session="robot-0", task="block_pull", created_at=5.0))
+    out.append(ResetReply(session="robot-0", accepted=True, reason="", episode=3, policy_version=12,
+                          run_id="run-1", observation="voxel"))  # fmt: skip
+    state = np.array([0.5, 0.0, 0.1, np.nan, np.inf], np.float32)  # not range-checked on the wire
+    out.append(ActRequest(session="robot-0", episode=3, step=0, stamp=6.0, state=state,
+                          points=rng.standard_normal((2, 4, 3)).astype(np.float32),
+                          point_counts=np.array([4, 9], np.int32)))  # fmt: skip
+    out.append(ActRequest(session="robot-0", episode=3, step=1, stamp=6.1, state=np.zeros(5, np.float32),
+                          executed=np.array([1, 0, 0, 0, 0], np.float32),
+                          image=rng.integers(0, 255, (2, 4, 4), dtype=np.uint8)))  # fmt: skip
+    out.append(ActReply(session="robot-0", episode=3, step=1, action=np.array([1, 0, 0, 0, 0], np.float32),
+                        policy_version=-1, held=True, reasons=["non_finite_observation", "estop"],
+                        compute_seconds=0.002))  # fmt: skip
+    out.append(EStop(operator_id="operator-0", engaged=True, created_at=7.0, reason="test"))
     return out
 
 
@@ -145,6 +160,11 @@ def test_seed_messages_cover_every_type_and_decode() -> None:
     assert {m.TYPE for m in SEEDS} >= {"Episode", "WeightsBlob", "WeightsAnnouncement"}
     assert any(m.TYPE == "Episode" and m.augmentation is not None for m in SEEDS)
     assert {m.TYPE for m in SEEDS} >= {"Heartbeat", "EvalReport", "ReplayGate"}
+    assert {m.TYPE for m in SEEDS} >= {"ResetRequest", "ResetReply", "ActRequest", "ActReply", "EStop"}
+    assert {(m.points is None, m.image is None) for m in SEEDS if m.TYPE == "ActRequest"} == {
+        (False, True),
+        (True, False),
+    }
     for data in SEED_BYTES:
         assert decode(data).encode() == data
 

@@ -20,11 +20,19 @@ from proto.actions import ACTION_DIM
 from proto.codec import Message, decode
 from proto.control import EpisodeAck, EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
+from proto.inference import STATE_DIM, ActReply, ActRequest, EStop, ResetReply, ResetRequest
 from proto.msgpack_wire import ProtocolError, pack
 from proto.specs import Arr, Bool, Float, Int, ListOf, MapOf, Opt, Spec, Str
 from proto.weights import WeightsAnnouncement, WeightsBlob, tensors_digest
 from tests.helpers.wire_asserts import assert_same, check_roundtrip
-from tests.helpers.wire_samples import GENERATORS, SEED, gen_episode, gen_heartbeat, real_message_types
+from tests.helpers.wire_samples import (
+    GENERATORS,
+    SEED,
+    gen_act_request,
+    gen_episode,
+    gen_heartbeat,
+    real_message_types,
+)
 
 pytestmark = pytest.mark.contract
 
@@ -167,6 +175,38 @@ def weights_blob_strategy(draw: st.DrawFn) -> WeightsBlob:
     return dataclasses.replace(blob, digest=tensors_digest(tensors))
 
 
+def any_float32_arrays(shape: Any) -> st.SearchStrategy:
+    """float32 arrays of any values: drawn as floats (NaN and inf included) or as raw bit patterns
+    (every NaN payload, signalling ones too); the codec must carry them bit for bit."""
+    as_floats = hnp.arrays(np.float32, shape, elements=st.floats(width=32))
+    as_bits = hnp.arrays(np.uint32, shape).map(lambda a: a.view(np.float32))
+    return as_floats | as_bits
+
+
+@st.composite
+def act_request_strategy(draw: st.DrawFn) -> ActRequest:
+    """Exactly one observation (points with point_counts, or an image: ``ActRequest.validate``);
+    ``state``, ``executed`` and ``points`` are not range-checked, so any float32 goes."""
+    obs: dict[str, Any] = {}
+    if draw(st.booleans()):
+        S, P = draw(st.integers(1, 4)), draw(st.integers(0, 4))
+        obs["points"] = draw(any_float32_arrays((S, P, 3)))
+        obs["point_counts"] = draw(hnp.arrays(np.int32, (S,), elements=st.integers(0, 2**31 - 1)))
+    else:
+        shape = st.tuples(st.integers(1, 3), st.integers(1, 6), st.integers(1, 6))
+        obs["image"] = draw(hnp.arrays(np.uint8, shape))
+    return draw(
+        message_strategy(
+            ActRequest,
+            state=any_float32_arrays((STATE_DIM,)),
+            executed=st.none() | any_float32_arrays((ACTION_DIM,)),
+            points=st.just(obs.get("points")),
+            point_counts=st.just(obs.get("point_counts")),
+            image=st.just(obs.get("image")),
+        )
+    )
+
+
 STRATEGIES: dict[str, st.SearchStrategy] = {
     "Augmentation": augmentation_strategy(),
     "Episode": episode_strategy(),
@@ -176,6 +216,11 @@ STRATEGIES: dict[str, st.SearchStrategy] = {
     "EvalReport": message_strategy(EvalReport),
     "ReplayGate": message_strategy(ReplayGate),
     "EpisodeAck": message_strategy(EpisodeAck),
+    "ResetRequest": message_strategy(ResetRequest),
+    "ResetReply": message_strategy(ResetReply),
+    "ActRequest": act_request_strategy(),
+    "ActReply": message_strategy(ActReply, action=finite_arrays("float32", (ACTION_DIM,), -1.0, 1.0)),
+    "EStop": message_strategy(EStop),
 }
 
 
@@ -193,6 +238,11 @@ def test_every_registered_type_has_generators() -> None:
         "Heartbeat",
         "EvalReport",
         "ReplayGate",
+        "ResetRequest",
+        "ResetReply",
+        "ActRequest",
+        "ActReply",
+        "EStop",
     }
     assert not registered - set(GENERATORS), (
         f"no seeded round-trip generator for {sorted(registered - set(GENERATORS))}"
@@ -280,3 +330,22 @@ def test_decode_as_the_wrong_class_names_type() -> None:
     with pytest.raises(ProtocolError) as ei:
         Episode.decode(data)
     assert ei.value.field == "_type"
+
+
+@pytest.mark.parametrize("points", [True, False], ids=["points", "image"])
+def test_act_request_variants_roundtrip(points: bool) -> None:
+    rng = np.random.default_rng([SEED, points])
+    for _ in range(10):
+        req = gen_act_request(rng, points=points)
+        assert (req.points is not None) == (req.point_counts is not None) == points != (req.image is not None)
+        out = check_roundtrip(req)
+        assert isinstance(out, ActRequest) and (out.image is None) == points
+
+
+def test_act_request_state_keeps_nan_and_inf_bit_for_bit() -> None:
+    bits = np.array([0x7FC00000, 0xFFC00000, 0x7F800001, 0x7FC0BEEF, 0xFF800000], np.uint32)
+    req = ActRequest(session="robot-0", episode=1, step=0, stamp=0.0, state=bits.view(np.float32),
+                     image=np.zeros((2, 3, 3), np.uint8))  # fmt: skip
+    out = check_roundtrip(req)
+    assert np.array_equal(np.asarray(out.state).view(np.uint32), bits)  # payloads and signalling NaN kept
+    assert out.executed is None and out.points is None and out.point_counts is None

@@ -24,6 +24,7 @@ import proto
 from proto.codec import Message, decode, field_table
 from proto.control import EpisodeAck, EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
+from proto.inference import ActReply, ActRequest, EStop, ResetReply, ResetRequest
 from proto.jsonschema import DIALECT, NDARRAY_KEYWORD, json_schema, json_schema_text
 from proto.msgpack_wire import ProtocolError, pack
 from proto.specs import Arr, Opt
@@ -74,6 +75,17 @@ def _heartbeat() -> Heartbeat:
     )
 
 
+def _act_request(step: int = 0, **obs: Any) -> ActRequest:
+    return ActRequest(session="robot-0", episode=1, step=step, stamp=1_700_000_000.25,
+                      state=np.array([0.5, 0.0, 0.12, 0.3, 1.0], np.float32), **obs)  # fmt: skip
+
+
+def _act_reply(held: bool) -> ActReply:
+    action = np.array([1.0, 0, 0, 0, 0] if held else [-1.0, 0.5, -0.25, 0.0, 1.0], np.float32)
+    return ActReply(session="robot-0", episode=1, step=4, action=action, policy_version=-1 if held else 7,
+                    held=held, reasons=["estop"] if held else [], compute_seconds=0.004)  # fmt: skip
+
+
 SAMPLES: dict[str, Callable[[], list[Message]]] = {
     "Augmentation": lambda: [_augmentation()],
     "Episode": lambda: [
@@ -120,6 +132,46 @@ SAMPLES: dict[str, Callable[[], list[Message]]] = {
     "Heartbeat": lambda: [_heartbeat(), dataclasses.replace(_heartbeat(), counters={}, detail="x" * 512)],
     "WeightsAnnouncement": lambda: [build_weights(1).announcement(byte_size=123)],
     "WeightsBlob": lambda: [build_weights(2, nbytes=1024)],
+    "ResetRequest": lambda: [
+        ResetRequest(session="robot-0", task="surgical_grasp_any", created_at=1_700_000_000.0)
+    ],
+    "ResetReply": lambda: [
+        ResetReply(
+            session="robot-0",
+            accepted=True,
+            reason="",
+            episode=1,
+            policy_version=7,
+            run_id="run-0",
+            observation="voxel",
+        ),
+        ResetReply(
+            session="robot-0",
+            accepted=False,
+            reason="no weights yet",
+            episode=0,
+            policy_version=-1,
+            run_id="",
+            observation="",
+        ),
+    ],
+    "ActRequest": lambda: [
+        _act_request(points=np.zeros((3, 8, 3), np.float32), point_counts=np.array([8, 0, 20], np.int32)),
+        _act_request(
+            step=4,
+            executed=np.array([1.0, 0.2, 0, 0, -0.5], np.float32),
+            image=np.zeros((2, 84, 84), np.uint8),
+        ),
+        dataclasses.replace(
+            _act_request(step=5, image=np.zeros((3, 64, 64), np.uint8)),
+            state=np.array([np.nan, 0, np.inf, 0, 2.0], np.float32),
+        ),  # not range-checked on the wire: the server answers with a hold
+    ],
+    "ActReply": lambda: [_act_reply(held=False), _act_reply(held=True)],
+    "EStop": lambda: [
+        EStop(operator_id="operator-0", engaged=True, created_at=1_700_000_000.0, reason="cable caught"),
+        EStop(operator_id="operator-0", engaged=False, created_at=1_700_000_010.0),
+    ],
 }
 
 PROTO_TYPES = sorted(
@@ -358,6 +410,32 @@ def test_episode_schema_details():
         "shape"
     ] == ["..."]
     assert json_schema(Heartbeat)["properties"]["detail"]["default"] == ""
+
+
+def test_serving_schema_details():
+    props = json_schema(ActRequest)["properties"]
+    state = props["state"][NDARRAY_KEYWORD]
+    assert state["shape"] == [5] and state["finite"] is False  # NaN travels; the server holds on it
+    assert "minimum" not in state and "maximum" not in state
+    for name, shape in [("points", ["S", "P", 3]), ("point_counts", ["S"]), ("image", ["C", "H", "W"])]:
+        assert {"type": "null"} in props[name]["anyOf"] and name not in json_schema(ActRequest)["required"]
+        assert props[name]["anyOf"][0][NDARRAY_KEYWORD]["shape"] == shape
+    assert props["image"]["anyOf"][0][NDARRAY_KEYWORD]["dtypes"] == ["uint8"]
+    action = json_schema(ActReply)["properties"]["action"][NDARRAY_KEYWORD]
+    assert (action["shape"], action["finite"], action["minimum"], action["maximum"]) == ([5], True, -1.0, 1.0)
+    assert json_schema(ResetReply)["properties"]["observation"]["enum"] == ["voxel", "depth", "dsa", ""]
+    assert json_schema(EStop)["properties"]["reason"]["default"] == ""
+
+
+def test_schema_cannot_express_the_one_observation_rule_but_the_codec_enforces_it():
+    """JSON Schema sees ndarrays as opaque objects: an ActRequest with no observation passes the schema;
+    ``ActRequest.validate`` refuses it on decode."""
+    doc = as_json_document(_act_request(image=np.zeros((2, 4, 4), np.uint8)))
+    doc["image"] = None
+    assert schema_errors(doc, json_schema(ActRequest)) == []
+    wire = {**_act_request(image=np.zeros((2, 4, 4), np.uint8)).to_wire(), "image": None}
+    with pytest.raises(ProtocolError):
+        decode(pack({"_type": "ActRequest", "_v": 1, **wire}))
 
 
 @pytest.mark.parametrize("cls", PROTO_TYPES, ids=lambda c: c.TYPE)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -12,25 +14,32 @@ from hypothesis import strategies as st
 import proto
 from proto import docs, topics
 from proto.codec import Message
+from proto.control import SERVICES
+from proto.inference import ActRequest, ResetRequest
 from proto.topics import (
     ALIVE,
     CHUNK,
     EPISODE_ACKS,
     EPISODES_AUGMENTED,
     EPISODES_RAW,
+    ESTOP,
     EVAL_REPORTS,
     PREFIX,
     REPLAY_GATE,
+    SERVE_ACT,
+    SERVE_RESET,
     STATUS,
     TOPICS,
     WEIGHTS_ANNOUNCE,
     WEIGHTS_LATEST,
     Congestion,
     Kind,
+    Priority,
     Topic,
     TopicKeyError,
     by_name,
     key,
+    may_request,
     may_write,
     parse,
     pattern,
@@ -105,6 +114,9 @@ def test_topics_are_distinct() -> None:
         (EVAL_REPORTS, "default", "mea/v1/default/eval/reports/*"),
         (REPLAY_GATE, "default", "mea/v1/default/learner/gate/*"),
         (EPISODE_ACKS, "default", "mea/v1/default/learner/acks/*"),
+        (SERVE_RESET, "default", "mea/v1/default/serve/reset/*"),
+        (SERVE_ACT, "cell-2", "mea/v1/cell-2/serve/act/*"),
+        (ESTOP, "default", "mea/v1/default/safety/estop/*"),
         (STATUS, "run-1", "mea/v1/run-1/status/*/*"),
         (ALIVE, "default", "mea/v1/default/alive/*/*"),
     ],
@@ -122,6 +134,9 @@ def test_every_topic_has_a_pattern_test() -> None:
         EVAL_REPORTS,
         REPLAY_GATE,
         EPISODE_ACKS,
+        SERVE_RESET,
+        SERVE_ACT,
+        ESTOP,
         STATUS,
         ALIVE,
     }
@@ -131,6 +146,15 @@ def test_every_topic_has_a_pattern_test() -> None:
 def test_partial_wildcards() -> None:
     assert key(STATUS, service="actor", instance="*") == "mea/v1/default/status/actor/*"
     assert key(ALIVE, service="*", instance="learner-0") == "mea/v1/default/alive/*/learner-0"
+
+
+def test_serving_keys() -> None:
+    assert key(SERVE_ACT, source="inference-0") == "mea/v1/default/serve/act/inference-0"
+    assert key(SERVE_RESET, "cell-2", source="inference-0") == "mea/v1/cell-2/serve/reset/inference-0"
+    assert parse("mea/v1/default/safety/estop/operator-0") == (ESTOP, "default", {"source": "operator-0"})
+    for bad in ("mea/v1/default/serve/act", "mea/v1/default/serve/act/a/b", "mea/v1/default/serve/step/a"):
+        with pytest.raises(TopicKeyError):
+            parse(bad)
 
 
 @pytest.mark.parametrize("bad", BAD_CHUNKS + [None, 3])
@@ -202,6 +226,15 @@ def test_message_types(topic: Topic) -> None:
     else:
         assert topic.kind is Kind.LIVELINESS
         assert topic.message is None
+    if topic.request is not None:
+        assert topic.kind is Kind.QUERY, f"only queries carry a request, not {topic.kind.value} {topic.name}"
+        assert issubclass(topic.request, Message) and not topic.request.NESTED_ONLY
+        assert Message._REGISTRY.get(topic.request.TYPE) is topic.request
+        assert topic.request is not topic.message
+    else:
+        assert not topic.requesters, f"{topic.name} names requesters but carries no request"
+    assert set(topic.writers) <= set(SERVICES), topic.name
+    assert set(topic.requesters) <= set(SERVICES), topic.name
 
 
 def test_message_type_per_topic() -> None:
@@ -214,9 +247,39 @@ def test_message_type_per_topic() -> None:
         "replay_gate": "ReplayGate",
         "status": "Heartbeat",
         "episode_acks": "EpisodeAck",
+        "serve_reset": "ResetReply",
+        "serve_act": "ActReply",
+        "estop": "EStop",
     }
     assert {t.name: t.message.TYPE for t in TOPICS if t.message is not None} == expected
     assert WEIGHTS_LATEST.kind is Kind.QUERY and ALIVE.kind is Kind.LIVELINESS
+    assert {t.name: t.request.TYPE for t in TOPICS if t.request is not None} == {
+        "serve_reset": "ResetRequest",
+        "serve_act": "ActRequest",
+    }
+
+
+def test_serving_topics_carry_requests_from_robots_answered_by_inference() -> None:
+    for topic, request in [(SERVE_RESET, ResetRequest), (SERVE_ACT, ActRequest)]:
+        assert topic.kind is Kind.QUERY and topic.placeholders == ("source",)
+        assert topic.request is request
+        assert topic.requesters == ("robot",)
+        assert topic.writers == ("inference",)
+    assert WEIGHTS_LATEST.request is None and WEIGHTS_LATEST.requesters == ()  # a plain query, anyone asks
+    assert ESTOP.kind is Kind.PUBSUB and ESTOP.request is None and ESTOP.requesters == ()
+    assert ESTOP.writers == ("operator",)
+
+
+def test_an_act_request_fits_the_topic_cap() -> None:
+    """The largest observation a robot sends (1,024 points in each of 3 segments, or a (3, 84, 84)
+    image) is far below SERVE_ACT's cap."""
+    req = ActRequest(session="r" * 96, episode=2**62, step=1_000_000, stamp=0.0, state=np.zeros(5, np.float32),
+                     executed=np.zeros(5, np.float32), points=np.zeros((3, 1024, 3), np.float32),
+                     point_counts=np.zeros(3, np.int32))  # fmt: skip
+    assert len(req.encode()) * 4 < SERVE_ACT.max_bytes
+    image = dataclasses.replace(req, points=None, point_counts=None, image=np.zeros((3, 84, 84), np.uint8))
+    assert len(image.encode()) * 4 < SERVE_ACT.max_bytes
+    assert SERVE_RESET.max_bytes >= 64 * 1024
 
 
 @pytest.mark.parametrize("topic", TOPICS, ids=ids(TOPICS))
@@ -231,6 +294,25 @@ def test_congestion_rules(topic: Topic) -> None:
 def test_drop_is_status_only() -> None:
     assert [t for t in TOPICS if t.qos.congestion is Congestion.DROP] == [STATUS]
     assert WEIGHTS_ANNOUNCE.qos.express
+
+
+@pytest.mark.parametrize("topic", [SERVE_RESET, SERVE_ACT, ESTOP], ids=ids([SERVE_RESET, SERVE_ACT, ESTOP]))
+def test_serving_and_safety_never_drop(topic: Topic) -> None:
+    assert topic.qos.congestion is Congestion.BLOCK and topic.qos.reliable, f"{topic.name} must never drop"
+    assert topic.qos.priority.value <= Priority.INTERACTIVE_HIGH.value, f"{topic.name} must beat data traffic"
+
+
+def test_real_time_priority_is_for_the_control_loop_only() -> None:
+    real_time = [t for t in TOPICS if t.qos.priority is Priority.REAL_TIME]
+    assert real_time == [SERVE_ACT, ESTOP]
+    assert all(t.qos.express for t in real_time), "control-loop messages are sent at once, never batched"
+
+
+def test_estop_is_latched_per_operator() -> None:
+    """Latest value per key: a subscriber keeps each operator's newest EStop, so a flood of them
+    cannot stall the transport that also carries everything else."""
+    assert ESTOP.qos.latest_only and "{source}" in ESTOP.path
+    assert not SERVE_ACT.qos.latest_only and not SERVE_RESET.qos.latest_only  # queries: not subscriptions
 
 
 # ----------------------------------------------------------------------------------------------
@@ -309,8 +391,44 @@ def test_topics_module_lists_every_topic() -> None:
         (STATUS, {"service": "actor", "instance": "actor-0"}, ("actor", "actor-0"), True),
         (STATUS, {"service": "learner", "instance": "learner-0"}, ("actor", "actor-0"), False),
         (STATUS, {"service": "actor", "instance": "actor-1"}, ("actor", "actor-0"), False),
+        (ESTOP, {"source": "operator-0"}, ("operator", "operator-0"), True),
+        (ESTOP, {"source": "operator-0"}, ("operator", "operator-1"), False),  # as another operator
+        (ESTOP, {"source": "robot-0"}, ("robot", "robot-0"), False),  # a robot cannot release an e-stop
+        (ESTOP, {"source": "inference-0"}, ("inference", "inference-0"), False),
+        (SERVE_ACT, {"source": "inference-0"}, ("inference", "inference-0"), True),  # the reply
+        (SERVE_ACT, {"source": "inference-0"}, ("inference", "inference-1"), False),  # another server's key
+        (SERVE_ACT, {"source": "robot-0"}, ("robot", "robot-0"), False),  # a robot cannot answer
+        (SERVE_RESET, {"source": "inference-0"}, ("inference", "inference-0"), True),
+        (SERVE_RESET, {"source": "inference-0"}, ("learner", "inference-0"), False),
     ],
 )
 def test_who_may_write(topic: Topic, parts: dict, sender: tuple[str, str], allowed: bool) -> None:
     why = may_write(topic, parts, *sender)
     assert (why is None) is allowed, why
+
+
+@pytest.mark.parametrize(
+    ("topic", "service", "allowed"),
+    [
+        (SERVE_ACT, "robot", True),
+        (SERVE_ACT, "actor", False),
+        (SERVE_ACT, "inference", False),  # a server does not ask another server
+        (SERVE_ACT, "operator", False),
+        (SERVE_RESET, "robot", True),
+        (SERVE_RESET, "evaluator", False),
+        (SERVE_RESET, "test", False),
+        (WEIGHTS_LATEST, "actor", True),  # no requesters: any service of the run may ask
+        (WEIGHTS_LATEST, "robot", True),
+    ],
+)
+def test_who_may_request(topic: Topic, service: str, allowed: bool) -> None:
+    why = may_request(topic, service)
+    assert (why is None) is allowed, why
+    if not allowed:
+        assert topic.name in why and service in why and "robot" in why
+
+
+def test_may_request_refuses_every_non_robot() -> None:
+    for topic in (SERVE_RESET, SERVE_ACT):
+        assert may_request(topic, "robot") is None
+        assert all(may_request(topic, s) is not None for s in SERVICES if s != "robot")

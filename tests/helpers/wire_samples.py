@@ -20,6 +20,7 @@ from proto.actions import ACTION_DIM
 from proto.codec import Message
 from proto.control import ACK_WINDOW, SERVICES, STATES, EpisodeAck, EvalReport, Heartbeat, ReplayGate
 from proto.episode import AUGMENTATION_KINDS, POLICY_KINDS, TASKS, Augmentation, Episode
+from proto.inference import OBSERVATIONS, STATE_DIM, ActReply, ActRequest, EStop, ResetReply, ResetRequest
 from proto.weights import ALGORITHMS, WeightsAnnouncement, WeightsBlob
 
 # make sure every proto module has registered its messages before the registry is inspected
@@ -202,6 +203,110 @@ def gen_episode_ack(rng: np.random.Generator) -> EpisodeAck:
     )
 
 
+def special_floats32() -> np.ndarray:
+    """float32 values a robot may put on the wire where nothing is range-checked: NaN (quiet, negative,
+    signalling, with a payload), infinities, signed zero, a subnormal and the extremes."""
+    nans = np.array([0x7FC00000, 0xFFC00000, 0x7F800001, 0x7FC0BEEF], np.uint32).view(np.float32)
+    finite = np.array([-0.0, np.finfo(np.float32).max, -np.finfo(np.float32).max, 1e-45], np.float32)
+    return np.concatenate([nans, np.array([np.inf, -np.inf], np.float32), finite])
+
+
+def rand_any_float32(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Mostly finite float32, sometimes with special values (NaN payloads included) mixed in."""
+    flat = rand_finite(rng, shape).reshape(-1)
+    if flat.size and rng.random() < 0.5:
+        special = special_floats32()
+        for i in rng.integers(0, flat.size, int(rng.integers(1, flat.size + 1))):
+            flat[i] = special[int(rng.integers(0, len(special)))]
+    return flat.reshape(shape)
+
+
+HOLD_REASONS = (
+    "no_session",
+    "stale_episode",
+    "estop",
+    "watchdog",
+    "non_finite_observation",
+    "out_of_workspace",
+)
+CLAMP_REASONS = ("workspace_x", "workspace_z", "step_xyz", "yaw_limit", "jaw")
+"""Examples of ``ActReply.reasons`` (the wire only fixes the pattern ``[a-z_]{1,32}``)."""
+
+
+def gen_reset_request(rng: np.random.Generator) -> ResetRequest:
+    return ResetRequest(session=rand_id(rng), task=str(rng.choice(TASKS)), created_at=rand_time(rng))
+
+
+def gen_reset_reply(rng: np.random.Generator) -> ResetReply:
+    if rng.random() < 0.5:  # refused
+        return ResetReply(session=rand_id(rng), accepted=False, reason="no weights yet ✗ " + rand_id(rng, 40),
+                          episode=0, policy_version=-1, run_id="", observation="")  # fmt: skip
+    return ResetReply(
+        session=rand_id(rng),
+        accepted=True,
+        reason="",
+        episode=int(rng.choice([1, int(rng.integers(1, 2**62, dtype=np.int64)), 2**62])),
+        policy_version=int(rng.integers(0, 2**62, dtype=np.int64)),
+        run_id=rand_id(rng),
+        observation=str(rng.choice(OBSERVATIONS)),
+    )
+
+
+def gen_act_request(rng: np.random.Generator, *, points: bool | None = None) -> ActRequest:
+    """One observation: points (with point_counts) or an image, never both (``ActRequest.validate``);
+    ``state`` and ``executed`` may hold any float32, NaN and inf included."""
+    points = bool(rng.random() < 0.5) if points is None else points
+    step = int(rng.choice([0, int(rng.integers(1, 1_000_001)), 1_000_000]))
+    obs: dict[str, Any] = {}
+    if points:
+        S, P = int(rng.integers(1, 5)), int(rng.integers(0, 7))
+        obs["points"] = rand_any_float32(rng, (S, P, 3))
+        obs["point_counts"] = rng.integers(0, 2**31 - 1, S).astype(np.int32)
+    else:
+        C, H, W = int(rng.choice([1, 2, 3])), int(rng.integers(1, 9)), int(rng.integers(1, 9))
+        obs["image"] = rng.integers(0, 256, (C, H, W)).astype(np.uint8)
+    executed = None if step == 0 or rng.random() < 0.2 else rand_any_float32(rng, (ACTION_DIM,))
+    return ActRequest(
+        session=rand_id(rng),
+        episode=int(rng.integers(1, 2**62, dtype=np.int64)),
+        step=step,
+        stamp=rand_time(rng),
+        state=rand_any_float32(rng, (STATE_DIM,)),
+        executed=executed,
+        **obs,
+    )
+
+
+def gen_act_reply(rng: np.random.Generator) -> ActReply:
+    held = bool(rng.random() < 0.5)
+    if held:
+        action = np.array([rng.choice([-1.0, 1.0, rng.uniform(-1, 1)]), 0, 0, 0, 0], np.float32)
+    else:
+        action = rng.uniform(-1.0, 1.0, ACTION_DIM).astype(np.float32)
+        action[int(rng.integers(0, ACTION_DIM))] = rng.choice([-1.0, 1.0, -0.0])  # the bounds are valid
+    n_reasons = int(rng.integers(1 if held else 0, 17))
+    reasons = HOLD_REASONS + CLAMP_REASONS if held else CLAMP_REASONS
+    return ActReply(
+        session=rand_id(rng),
+        episode=int(rng.integers(0, 2**62, dtype=np.int64)),
+        step=int(rng.integers(0, 1_000_001)),
+        action=action,
+        policy_version=int(rng.integers(-1, 2**40)),
+        held=held,
+        reasons=[str(rng.choice(reasons)) for _ in range(n_reasons)],
+        compute_seconds=float(rng.choice([0.0, rng.random() * 0.05, rng.random() * 10])),
+    )
+
+
+def gen_estop(rng: np.random.Generator) -> EStop:
+    kwargs: dict[str, Any] = {}
+    if rng.random() < 0.5:
+        kwargs["reason"] = "operator pressed the button ✋ " + rand_id(rng, 40)
+    return EStop(
+        operator_id=rand_id(rng), engaged=bool(rng.random() < 0.5), created_at=rand_time(rng), **kwargs
+    )
+
+
 GENERATORS: dict[str, Callable[[np.random.Generator], Message]] = {
     "Augmentation": gen_augmentation,
     "Episode": gen_episode,
@@ -211,6 +316,11 @@ GENERATORS: dict[str, Callable[[np.random.Generator], Message]] = {
     "EvalReport": gen_eval_report,
     "ReplayGate": gen_replay_gate,
     "EpisodeAck": gen_episode_ack,
+    "ResetRequest": gen_reset_request,
+    "ResetReply": gen_reset_reply,
+    "ActRequest": gen_act_request,
+    "ActReply": gen_act_reply,
+    "EStop": gen_estop,
 }
 
 

@@ -21,9 +21,9 @@ def gate(k: int, learner: str = "learner-0", created_at: float | None = None) ->
                       created_at=time.time() if created_at is None else created_at)  # fmt: skip
 
 
-def test_only_gates_announcements_acks_and_heartbeats_are_latest_value_topics():
+def test_only_gates_announcements_acks_heartbeats_and_estops_are_latest_value_topics():
     latest = {t.name for t in TOPICS if t.qos.latest_only}
-    assert latest == {REPLAY_GATE.name, WEIGHTS_ANNOUNCE.name, STATUS.name, "episode_acks"}
+    assert latest == {REPLAY_GATE.name, WEIGHTS_ANNOUNCE.name, STATUS.name, "episode_acks", "estop"}
     assert not EPISODES_RAW.qos.latest_only
 
 

@@ -21,7 +21,7 @@ from typing import Protocol
 from proto.codec import Message
 from proto.msgpack_wire import DEFAULT_LIMITS, Limits, ProtocolError
 from proto.seal import is_sealed, seal, unseal
-from proto.topics import ALIVE, Kind, Topic, key, may_write, parse
+from proto.topics import ALIVE, Kind, Topic, key, may_request, may_write, parse
 
 log = logging.getLogger(__name__)
 
@@ -211,6 +211,9 @@ class AliveWatch:
 
 
 QueryHandler = Callable[[dict[str, str]], "Message | bytes | None"]
+RequestHandler = Callable[[Delivery], "Message | bytes | None"]
+"""Answers a query that carries a request message (``Topic.request``): the decoded, checked request
+in, the reply (or None: no reply) out."""
 
 
 class LogLimiter:
@@ -266,15 +269,25 @@ class Bus(ABC):
         c = self.credentials
         return body if c is None else seal(c.key, key_expr, c.service, c.instance, body)
 
-    def _open(self, topic: Topic, key_expr: str, parts: dict[str, str], payload: bytes) -> tuple[str, bytes]:
-        """(sender, body): with credentials the seal must verify and the sender may write here;
-        without, a seal is only read (the sender is then unverified)."""
+    def encode_request(self, topic: Topic, msg: Message, key_expr: str) -> bytes:
+        if topic.request is None or not isinstance(msg, topic.request):
+            raise TypeError(f"{topic.name} requests carry {topic.request}, not {type(msg).__name__}")
+        body = msg.encode()
+        c = self.credentials
+        return body if c is None else seal(c.key, key_expr, c.service, c.instance, body)
+
+    def _open(self, topic: Topic, key_expr: str, parts: dict[str, str], payload: bytes,
+              request: bool = False) -> tuple[str, bytes]:  # fmt: skip
+        """(sender, body): with credentials the seal must verify and the sender may write here (or,
+        for a ``request``, may ask); without, a seal is only read (the sender is then unverified)."""
         c = self.credentials
         if c is None and not is_sealed(payload):
             return "", payload
         s = unseal(None if c is None else c.key, key_expr, payload)
-        if c is not None and (why := may_write(topic, parts, s.service, s.instance)) is not None:
-            raise ProtocolError("<sender>", why)
+        if c is not None:
+            why = may_request(topic, s.service) if request else may_write(topic, parts, s.service, s.instance)
+            if why is not None:
+                raise ProtocolError("<sender>", why)
         return s.sender, s.body
 
     def _check_size(self, topic: Topic, payload: bytes) -> None:
@@ -320,6 +333,29 @@ class Bus(ABC):
         self.stats.received_bytes[topic.name] += len(payload)
         return Delivery(key_expr, parts, msg, len(payload), sender)
 
+    def decode_request(self, topic: Topic, key_expr: str, payload: bytes) -> Delivery | None:
+        """The request a query carried, checked like any message (size, seal, requester, schema);
+        None (counted, logged) when refused."""
+        try:
+            self._check_size(topic, payload)
+            _, _, parts = parse(key_expr)
+            sender, body = self._open(topic, key_expr, parts, payload, request=True)
+            msg = topic.request.decode(body, self.limits)  # type: ignore[union-attr]
+        except (ProtocolError, ValueError) as exc:
+            self._reject(topic, key_expr, exc)
+            return None
+        self.stats.received[topic.name] += 1
+        self.stats.received_bytes[topic.name] += len(payload)
+        return Delivery(key_expr, parts, msg, len(payload), sender)
+
+    @staticmethod
+    def _expect_request(topic: Topic, carries: bool) -> None:
+        if topic.kind is not Kind.QUERY:
+            raise TypeError(f"{topic.name} is a {topic.kind.value} topic, not query")
+        if (topic.request is not None) != carries:
+            how = "answer/call" if topic.request is not None else "serve/query"
+            raise TypeError(f"{topic.name}: use {how}")
+
     def _count_published(self, topic: Topic, n: int) -> None:
         self.stats.published[topic.name] += 1
         self.stats.published_bytes[topic.name] += n
@@ -347,6 +383,16 @@ class Bus(ABC):
         self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0, **parts: str
     ) -> Delivery | None:
         """Ask a QUERY topic; the first valid reply, or None if none came before ``timeout``."""
+
+    @abstractmethod
+    def answer(self, topic: Topic, handler: RequestHandler, **parts: str) -> Handle:
+        """Answer queries that carry a request (``topic.request``) on the concrete key of ``parts``;
+        ``handler(request)`` runs on a bus worker thread, one query at a time."""
+
+    @abstractmethod
+    def call(self, topic: Topic, request: Message, timeout: float = 10.0, **parts: str) -> Delivery | None:
+        """Send ``request`` to the server at the concrete key of ``parts``; its valid reply, or None
+        if none came before ``timeout``."""
 
     @abstractmethod
     def declare_alive(self, service: str, instance: str) -> Handle:

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from proto.codec import Message
 from proto.msgpack_wire import DEFAULT_LIMITS, Limits
 from proto.topics import ALIVE, Kind, Topic
-from services.common.bus.base import AliveWatch, Bus, Delivery, QueryHandler, Subscription
+from services.common.bus.base import AliveWatch, Bus, Delivery, QueryHandler, RequestHandler, Subscription
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +34,7 @@ class Hub:
 
     lock: threading.Lock = field(default_factory=threading.Lock)
     subs: list[tuple[str, Subscription]] = field(default_factory=list)
-    queryables: list[tuple[str, QueryHandler, InProcBus]] = field(default_factory=list)
+    queryables: list[tuple[str, QueryHandler | RequestHandler, InProcBus]] = field(default_factory=list)
     tokens: dict[str, int] = field(default_factory=dict)
     watches: list[tuple[str, AliveWatch]] = field(default_factory=list)
 
@@ -54,6 +54,7 @@ class InProcBus(Bus):
         super().__init__(namespace, limits)
         self.hub = hub or Hub()
         self._handles: list = []
+        self._answering = threading.Lock()
 
     def publish(self, topic: Topic, msg: Message | bytes, **parts: str) -> int:
         self._expect(topic, Kind.PUBSUB)
@@ -83,7 +84,14 @@ class InProcBus(Bus):
         return sub
 
     def serve(self, topic: Topic, handler: QueryHandler, **parts: str):
-        self._expect(topic, Kind.QUERY)
+        self._expect_request(topic, False)
+        return self._declare_server(topic, handler, parts)
+
+    def answer(self, topic: Topic, handler: RequestHandler, **parts: str):
+        self._expect_request(topic, True)
+        return self._declare_server(topic, handler, parts)
+
+    def _declare_server(self, topic: Topic, handler, parts: dict[str, str]):
         entry = (self.key(topic, **parts), handler, self)
         with self.hub.lock:
             if any(k == entry[0] for k, _, _ in self.hub.queryables):
@@ -102,7 +110,7 @@ class InProcBus(Bus):
     def query(
         self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0, **parts: str
     ) -> Delivery | None:
-        self._expect(topic, Kind.QUERY)
+        self._expect_request(topic, False)
         pattern = self.wildcard_key(topic, parts)
         with self.hub.lock:
             targets = [(k, h, b) for k, h, b in self.hub.queryables if key_matches(pattern, k)]
@@ -118,6 +126,29 @@ class InProcBus(Bus):
             delivery = self.decode_delivery(topic, key_expr, payload)
             if delivery is not None:
                 return delivery
+        return None
+
+    def call(self, topic: Topic, request: Message, timeout: float = 10.0, **parts: str) -> Delivery | None:
+        self._expect_request(topic, True)
+        key_expr = self.key(topic, **parts)
+        payload = self.encode_request(topic, request, key_expr)
+        self._count_published(topic, len(payload))
+        with self.hub.lock:
+            targets = [(h, b) for k, h, b in self.hub.queryables if k == key_expr]
+        for handler, server in targets:
+            decoded = server.decode_request(topic, key_expr, payload)  # checked by the server, as over Zenoh
+            if decoded is None:
+                continue
+            with server._answering:  # one request at a time per server, as Zenoh's query thread does
+                try:
+                    reply = handler(decoded)
+                except Exception:  # noqa: BLE001 - same as Zenoh: a failing server answers nothing
+                    log.exception("query handler failed", extra={"topic": topic.name})
+                    continue
+            if reply is not None:
+                answer = server.encode_for(topic, reply, key_expr)
+                server._count_published(topic, len(answer))
+                return self.decode_delivery(topic, key_expr, answer)
         return None
 
     def declare_alive(self, service: str, instance: str):

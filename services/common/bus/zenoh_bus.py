@@ -23,7 +23,7 @@ import zenoh
 from proto.codec import Message
 from proto.msgpack_wire import DEFAULT_LIMITS, Limits
 from proto.topics import ALIVE, Congestion, Kind, Topic
-from services.common.bus.base import AliveWatch, Bus, Delivery, QueryHandler, Subscription
+from services.common.bus.base import AliveWatch, Bus, Delivery, QueryHandler, RequestHandler, Subscription
 
 log = logging.getLogger(__name__)
 _LOG_ONCE = threading.Lock()
@@ -219,11 +219,18 @@ class ZenohBus(Bus):
 
     # query/serve -----------------------------------------------------------------------------
     def serve(self, topic: Topic, handler: QueryHandler, **parts: str):
-        self._expect(topic, Kind.QUERY)
+        self._expect_request(topic, False)
+        return self._declare_server(topic, handler, False, parts)
+
+    def answer(self, topic: Topic, handler: RequestHandler, **parts: str):
+        self._expect_request(topic, True)
+        return self._declare_server(topic, handler, True, parts)
+
+    def _declare_server(self, topic: Topic, handler, takes_request: bool, parts: dict[str, str]):
         key_expr = self.key(topic, **parts)
         if key_expr in self._servers:
             raise ValueError(f"{key_expr} is already served by this bus")
-        self._servers[key_expr] = handler
+        self._servers[key_expr] = (handler, takes_request)
         self._ensure_worker()
 
         def on_query(q: zenoh.Query) -> None:
@@ -252,9 +259,14 @@ class ZenohBus(Bus):
                 return
             topic, key_expr, q = item
             try:
-                params = {k: v for k, v in q.parameters}
-                handler = self._servers.get(key_expr)
-                reply = handler(params) if handler is not None else None
+                entry = self._servers.get(key_expr)
+                reply = None
+                if entry is not None and entry[1]:  # the query carries a request message
+                    raw = q.payload.to_bytes() if q.payload is not None else b""
+                    request = self.decode_request(topic, key_expr, raw)
+                    reply = entry[0](request) if request is not None else None
+                elif entry is not None:
+                    reply = entry[0]({k: v for k, v in q.parameters})
                 if reply is not None:
                     payload = self.encode_for(topic, reply, key_expr)
                     q.reply(key_expr, payload)  # replies travel with the query's QoS
@@ -267,13 +279,25 @@ class ZenohBus(Bus):
     def query(
         self, topic: Topic, params: dict[str, str] | None = None, timeout: float = 10.0, **parts: str
     ) -> Delivery | None:
-        self._expect(topic, Kind.QUERY)
+        self._expect_request(topic, False)
         selector = self.wildcard_key(topic, parts)
         if params:
             selector += "?" + ";".join(f"{k}={v}" for k, v in params.items())
         replies = self.session.get(
             selector, timeout=timeout, congestion_control=_congestion(topic), priority=_priority(topic)
         )
+        return self._first_reply(topic, replies)
+
+    def call(self, topic: Topic, request: Message, timeout: float = 10.0, **parts: str) -> Delivery | None:
+        self._expect_request(topic, True)
+        key_expr = self.key(topic, **parts)
+        payload = self.encode_request(topic, request, key_expr)
+        replies = self.session.get(key_expr, payload=payload, timeout=timeout, express=topic.qos.express,
+                                   congestion_control=_congestion(topic), priority=_priority(topic))  # fmt: skip
+        self._count_published(topic, len(payload))
+        return self._first_reply(topic, replies)
+
+    def _first_reply(self, topic: Topic, replies) -> Delivery | None:
         result = None
         for reply in replies:
             if result is None and reply.ok is not None:

@@ -121,12 +121,23 @@ class PolicyRuntime:
         if self._latent is not None:
             self._latent.reset()
 
+    def fresh(self, seed: int = 0) -> PolicyRuntime:
+        """A runtime with these weights (the same modules, shared read-only) and its own recurrent
+        state and generator: one per robot session of an inference server."""
+        other = PolicyRuntime(self.deterministic, seed)
+        other.actor, other.spec, other.version = self.actor, self.spec, self.version
+        if self._latent is not None:
+            other._latent = self._latent.fresh(other.generator)
+        return other
+
     def executed(self, action: np.ndarray) -> None:
-        """What the env executed on the last step (it may differ from what ``act`` chose: Surgical Grasp
-        Any's hybrid controller drives the approach). GASv2's latent state needs it; SAC, whose tasks
-        execute what it chose, keeps its own previous action."""
+        """What was executed on the last step (it may differ from what ``act`` chose: Surgical Grasp
+        Any's hybrid controller drives the approach; a robot's safety envelope clamps or holds). It is
+        the previous action the next step sees, as in the episodes the learner trains on."""
         if self._latent is not None:
             self._latent.executed(action)
+        else:
+            self._prev = torch.from_numpy(np.asarray(action, np.float32).reshape(1, ACTION_DIM).copy())
 
     @torch.no_grad()
     def act(self, image_codes: np.ndarray) -> np.ndarray:

@@ -75,6 +75,12 @@ class LatentRuntime:
         policy.eval()
         self.policy, self.spec = policy, spec
 
+    def fresh(self, generator: torch.Generator) -> LatentRuntime:
+        """The same policy (shared, read-only) with its own state and generator."""
+        other = LatentRuntime(self.deterministic, generator)
+        other.policy, other.spec = self.policy, self.spec
+        return other
+
     def reset(self) -> None:
         self._state = None
         self._prev_feature = torch.zeros(1, FEATURE_DIM)

@@ -1,0 +1,160 @@
+"""What `mea robot` needs from an arm: the adapter contract, and the simulated arm that implements it.
+
+``RobotAdapter`` is the whole boundary between the inference client (``services.inference.robot``)
+and hardware. A real arm's bridge implements these five methods and nothing else of this project
+changes. The contract, for a dVRK PSM driven through its ROS interface (dvrk_ros / CRTK names; no
+ROS code lives in this project):
+
+* **Frames and units.** Every pose is the pivot of the gripper (the point the policy's gripper-centric
+  frame is centred on) in the arm's base frame (``PSM1_base``), in metres, with the yaw about the base
+  frame's vertical axis in radians. The bridge converts from the tool-tip frame it measures
+  (``/PSM1/measured_cp``, geometry_msgs/PoseStamped) with the fixed tip-to-pivot offset of its
+  instrument. Jaw opening is normalised, 0 closed .. 1 open (``/PSM1/jaw/measured_js``, rad, divided
+  by the open angle).
+* **Observation.** ``observe()`` returns ``RobotObservation``: the segmented point cloud in the
+  gripper-centric frame (world orientation, origin at the pivot; gripper segment first, then one per
+  object; fixed points per segment as ``Episode.points``) from the lab's perception, or the policy image
+  already projected, plus the pose and jaw above and the time the observation was taken.
+* **Command.** ``execute(action)`` gets the normalised action ``(jaw, dx, dy, dz, dtheta)`` that the
+  server's envelope let through and applies it once: target pivot = measured pivot +
+  ``Limits.metres_per_unit`` x (dx, dy, dz), target yaw = measured yaw + ``radians_per_unit`` x
+  dtheta, sent as one ``/PSM1/servo_cp`` goal; jaw >= 0 opens, < 0 closes (``/PSM1/jaw/servo_jp``).
+  It returns when the motion is done (or its own controller gave up) with what was actually executed.
+* **Hold.** ``hold(reason)`` may be called from another thread at any time (watchdog, e-stop, lost
+  server or operator): the arm must stop where it is and keep its jaw (dVRK: ``/PSM1/hold``) within
+  one control cycle, and ignore nothing else: the next ``execute`` resumes motion.
+* **Reset.** ``reset(seed)`` brings the scene to a start state (a human or a script on real hardware;
+  ``seed`` only matters in simulation) and returns the first observation.
+
+``SimRobot`` implements it on one of the project's pybullet tasks: the env *is* the arm, so `mea robot
+--sim` exercises the same path a real bridge would, and its episodes can be compared with the
+evaluator's on the same seeds.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from proto.actions import ACTION_DIM, DELTA_THETA, DELTA_XYZ, JAW
+from services.actor.rollout import policy_input
+from services.inference.core.envelope import Limits
+from services.tasks import ManipulationEnv, make_env
+from services.tasks.env import Observation
+
+
+@dataclass(frozen=True)
+class RobotObservation:
+    """One observation as the inference server takes it (``proto.inference.ActRequest``)."""
+
+    state: np.ndarray
+    """float32 (5,): pivot x, y, z (m, base frame), yaw (rad), jaw opening 0..1."""
+    stamp: float
+    """UNIX time (s) it was taken."""
+    points: np.ndarray | None = None
+    point_counts: np.ndarray | None = None
+    image: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class StepOutcome:
+    """What one executed command did (the simulator's reward and flags; a real arm reports zeros)."""
+
+    observation: RobotObservation
+    executed: np.ndarray
+    reward: float = 0.0
+    terminated: bool = False
+    truncated: bool = False
+
+
+class RobotAdapter(Protocol):
+    task: str
+    max_steps: int
+
+    def reset(self, seed: int, observation: str) -> RobotObservation: ...
+
+    def execute(self, action: np.ndarray) -> StepOutcome: ...
+
+    def hold(self, reason: str) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def observation_of(obs: Observation, observation: str, stamp: float) -> RobotObservation:
+    """The request-side observation of a task env's observation, in the form ``observation`` needs:
+    points for ``voxel`` (the server projects them), the image for ``depth`` and ``dsa``."""
+    state = np.append(np.asarray(obs.gripper_pose, np.float32), np.float32(obs.jaw)).astype(np.float32)
+    if observation == "voxel":
+        return RobotObservation(state, stamp, np.asarray(obs.points, np.float32),
+                                np.asarray(obs.point_counts, np.int32))  # fmt: skip
+    return RobotObservation(state, stamp, image=np.ascontiguousarray(policy_input(obs, observation)))
+
+
+def action_scale(env: ManipulationEnv) -> tuple[float, float]:
+    """(metres, radians) one action unit moves in ``env`` (the surgical task's are its own)."""
+    actions = getattr(getattr(env, "settings", None), "actions", None)
+    if actions is not None and hasattr(actions, "step_translation"):
+        return float(actions.step_translation), float(actions.step_rotation)
+    return DELTA_XYZ, DELTA_THETA
+
+
+def sim_limits(env: ManipulationEnv) -> Limits:
+    """The envelope of a simulated arm: one full step per command, and the box the env keeps the
+    commanded pivot in widened by two steps, so the envelope never binds where the env's own limits
+    act (its episodes stay those the evaluator runs) but still stops anything beyond."""
+    per_unit, per_turn = action_scale(env)
+    bounds = getattr(env, "pivot_bounds", None) or env.robot.pivot_bounds
+    low, high = (np.asarray(b, np.float64) for b in bounds())
+    margin = 2.0 * per_unit
+    return Limits(metres_per_unit=per_unit, radians_per_unit=per_turn,
+                  max_translation=per_unit * math.sqrt(3.0) * (1 + 1e-6), max_rotation=per_turn * (1 + 1e-6),
+                  workspace_low=tuple(float(x) for x in low - margin),
+                  workspace_high=tuple(float(x) for x in high + margin),
+                  observation_margin=margin)  # fmt: skip
+
+
+class SimRobot:
+    """A pybullet task as the arm. ``hold`` (any thread) makes the next command a hold: the sim moves
+    only when stepped, so holding is stepping with no motion and the jaw kept."""
+
+    def __init__(self, task: str, settings=None, env: ManipulationEnv | None = None) -> None:
+        self.task = task
+        self.env = env or make_env(task, settings)
+        self.max_steps = int(self.env.settings.max_steps)
+        self._observation = "voxel"
+        self._jaw = 1.0
+        self._lock = threading.Lock()
+        self.holds: list[str] = []
+        self._hold_next = False
+
+    def reset(self, seed: int, observation: str) -> RobotObservation:
+        self._observation, self._jaw = observation, 1.0
+        with self._lock:
+            self._hold_next = False
+        return observation_of(self.env.reset(seed), observation, time.time())
+
+    def hold(self, reason: str) -> None:
+        with self._lock:
+            self.holds.append(reason)
+            self._hold_next = True
+
+    def execute(self, action: np.ndarray) -> StepOutcome:
+        a = np.asarray(action, np.float32).copy()
+        with self._lock:
+            if self._hold_next:
+                a[:] = 0.0
+                a[JAW] = self._jaw
+                self._hold_next = False
+        obs, reward, terminated, truncated, info = self.env.step(a)
+        executed = np.asarray(info.get("executed_action", a), np.float32).reshape(ACTION_DIM)
+        self._jaw = 1.0 if executed[JAW] >= 0 else -1.0
+        return StepOutcome(observation_of(obs, self._observation, time.time()), executed, float(reward),
+                           bool(terminated), bool(truncated))  # fmt: skip
+
+    def close(self) -> None:
+        self.env.close()
