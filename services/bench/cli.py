@@ -45,6 +45,11 @@ BENCHES: dict[str, tuple[str, str, str]] = {
         "TasksBenchConfig",
         "scripted-expert success, env steps/s and the transition prior per task",
     ),
+    "serve": (
+        "services.bench.serve",
+        "ServeBenchConfig",
+        "inference server act() round trip and server time per actor preset, weights swap -> first action",
+    ),
 }
 
 

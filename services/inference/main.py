@@ -27,7 +27,10 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from proto.inference import ActRequest, ResetRequest
+import numpy as np
+
+from proto.actions import ACTION_DIM, JAW
+from proto.inference import ActReply, ActRequest, ResetReply, ResetRequest
 from proto.topics import ESTOP, SERVE_ACT, SERVE_RESET, WEIGHTS_ANNOUNCE, WEIGHTS_LATEST
 from services.common import config, run_key, weights_file
 from services.common.bus.base import Bus, Delivery
@@ -74,6 +77,21 @@ def serve_metrics(m: ServiceMetrics) -> dict:
     mx["version"].set(-1)
     mx["served_version"].set(-1)
     return mx
+
+
+def _starting(d: Delivery, kind: str):
+    """The answer while the server is still loading its policy."""
+    if kind == "reset":
+        return ResetReply(session=d.message.session, accepted=False, reason="server starting", episode=0,
+                          policy_version=-1, run_id="", observation="")  # fmt: skip
+    return _held(d.message, "no_policy")
+
+
+def _held(req: ActRequest, reason: str) -> ActReply:
+    hold = np.zeros(ACTION_DIM, np.float32)
+    hold[JAW] = 1.0 if np.isfinite(req.state[4]) and req.state[4] >= 0.5 else -1.0
+    return ActReply(session=req.session, episode=req.episode, step=req.step, action=hold, policy_version=-1,
+                    held=True, reasons=[reason], compute_seconds=0.0, nonce=req.nonce)  # fmt: skip
 
 
 class Server:
@@ -124,7 +142,12 @@ class Server:
     # queries ---------------------------------------------------------------------------------
     def on_reset(self, d: Delivery):
         req: ResetRequest = d.message  # type: ignore[assignment]
-        reply = self.core.reset(req, time.monotonic(), d.sender)
+        try:
+            reply = self.core.reset(req, time.monotonic(), d.sender)
+        except Exception as exc:  # noqa: BLE001 - the robot gets a refusal, never silence
+            log.exception("reset failed", extra={"session": req.session})
+            reply = ResetReply(session=req.session, accepted=False, reason=f"server error: {exc}"[:256], episode=0,
+                               policy_version=-1, run_id="", observation="")  # fmt: skip
         self.counts["resets"] += 1
         self.mx["requests"].labels("reset").inc()
         self.mx["sessions"].set(len(self.core.sessions))
@@ -134,7 +157,11 @@ class Server:
 
     def on_act(self, d: Delivery):
         req: ActRequest = d.message  # type: ignore[assignment]
-        reply = self.core.act(req, time.monotonic(), time.time(), d.sender)
+        try:
+            reply = self.core.act(req, time.monotonic(), time.time(), d.sender)
+        except Exception:  # noqa: BLE001 - the robot gets a hold with the reason, never silence
+            log.exception("act failed", extra={"session": req.session, "step": req.step})
+            reply = _held(req, "server_error")
         self.counts["acts"] += 1
         self.mx["requests"].labels("act").inc()
         self.mx["act_seconds"].observe(reply.compute_seconds)
@@ -180,18 +207,30 @@ def run(cfg: ServeConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = N
         torch.set_num_threads(cfg.torch_threads)
     holder: dict[str, object] = {}
 
+    def answer(kind: str):
+        def handler(d: Delivery):
+            server = holder.get("server")
+            if not isinstance(server, Server):  # queries answered before the policy is loaded
+                return _starting(d, kind)
+            return server.on_reset(d) if kind == "reset" else server.on_act(d)
+
+        return handler
+
     def declare(bus: Bus) -> None:
+        # before the liveliness token: a robot that sees the server can be answered at once
         holder["estop"] = bus.subscribe(ESTOP, capacity=16)
         holder["weights"] = None if cfg.weights else WeightsClient(bus)
+        holder["handles"] = [bus.answer(SERVE_RESET, answer("reset"), source=ctx.instance),
+                             bus.answer(SERVE_ACT, answer("act"), source=ctx.instance)]  # fmt: skip
 
     def counters() -> dict[str, float]:
         s = holder.get("server")
         return s.heartbeat_counters() if isinstance(s, Server) else {}
 
     make_bus = subscribing_bus_factory(bus_factory, declare)
-    with ServiceContext("inference", cfg.service, bus_factory=make_bus, counters=counters) as ctx:
+    ctx = ServiceContext("inference", cfg.service, bus_factory=make_bus, counters=counters)
+    with ctx:
         server = Server(cfg, ctx, holder["weights"], holder["estop"])  # type: ignore[arg-type]
-        holder["server"] = server
         bus = ctx.bus
         assert bus is not None
         previous = bus.on_bad_message
@@ -207,8 +246,7 @@ def run(cfg: ServeConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = N
                 server.load_pinned()
             except weights_file.WeightsFileError as exc:
                 raise SystemExit(f"serve: {exc}") from None
-        handles = [bus.answer(SERVE_RESET, server.on_reset, source=ctx.instance),
-                   bus.answer(SERVE_ACT, server.on_act, source=ctx.instance)]  # fmt: skip
+        holder["server"] = server
         ctx.detail = f"serving {cfg.weights or 'the learner broadcast'}"
         log.info("serving", extra={"instance": ctx.instance, "weights": cfg.weights or "follow"})
         if ready is not None:
@@ -216,9 +254,9 @@ def run(cfg: ServeConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = N
         try:
             while not ctx.shutdown.is_set():
                 server.step()
-                ctx.shutdown.wait(0.05)
+                ctx.shutdown.wait(0.01)  # a new version is picked up within 10 ms of its announcement
         finally:
-            for h in handles:
+            for h in holder["handles"]:  # type: ignore[attr-defined]
                 h.close()
     return 0
 

@@ -341,3 +341,28 @@ def test_an_unsigned_blob_is_refused_and_the_signed_version_keeps_serving(tmp_pa
         )
     finally:
         serving.stop()
+
+
+def test_a_failing_handler_answers_with_a_reason_not_silence(tmp_path, monkeypatch):
+    hub = Hub()
+    path = weights_file.write(tmp_path / "weights", blob(1))
+    serving = Serving(ServeConfig(weights=str(path), service=svc("inference-0")), hub)
+    try:
+        robot = InProcBus(hub)
+        from proto.topics import SERVE_ACT, SERVE_RESET
+
+        def boom(*a, **k):
+            raise RuntimeError("policy exploded")
+
+        monkeypatch.setattr(serving.server.core, "reset", boom)
+        r = robot.call(SERVE_RESET, ResetRequest(session="arm", task="block_pull", created_at=time.time()),
+                       source="inference-0").message  # fmt: skip
+        assert not r.accepted and "policy exploded" in r.reason
+        monkeypatch.setattr(serving.server.core, "act", boom)
+        req = ActRequest(session="arm", episode=1, step=0, stamp=time.time(), nonce=9,
+                         state=np.array([0.5, 0, 0.2, 0, 1], np.float32), image=np.zeros((2, 84, 84), np.uint8))  # fmt: skip
+        reply = robot.call(SERVE_ACT, req, source="inference-0").message
+        assert reply.held and reply.reasons == ["server_error"] and reply.nonce == 9
+        assert serving.server.mx["holds"].labels("server_error")._value.get() == 1
+    finally:
+        serving.stop()

@@ -42,7 +42,7 @@ from services.observation.projection import segment_policy_images
 
 REFUSAL_REASONS = ("not_newer", "other_run", "digest", "load")
 """Why ``offer`` refused a blob (a metric label)."""
-SESSION_HOLDS = ("no_session", "stale_episode", "bad_observation", "no_policy")
+SESSION_HOLDS = ("no_session", "stale_episode", "bad_observation", "no_policy", "server_error")
 """Holds decided here rather than by the envelope (which has ``HOLD_REASONS``)."""
 MAX_POINT_RADIUS = 2.0
 """Gripper-centric points farther than this (m) are not a manipulation scene: refused as out of space."""
