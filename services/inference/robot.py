@@ -37,11 +37,12 @@ from services.common import config
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
 from services.common.mcap_io.recorder import McapRecorder
+from services.common.metrics import ServiceMetrics
 from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.evaluator.core.metrics import EpisodeResult, episode_result, summarize
 from services.inference.adapter import RobotAdapter, RobotObservation, SimRobot, sim_limits
 from services.inference.core.envelope import Limits
-from services.inference.core.robot_safety import RobotSafety
+from services.inference.core.robot_safety import ROBOT_HOLD_REASONS, RobotSafety
 from services.tasks import TASK_CLASSES, EnvSettings
 from services.tasks.camera import CameraSettings
 
@@ -109,12 +110,30 @@ class RobotConfig:
                            camera=CameraSettings(points_per_segment=self.points_per_segment))  # fmt: skip
 
 
+def robot_metrics(m: ServiceMetrics) -> dict:
+    mx = {
+        "round_trip": m.histogram(
+            "mea_robot_round_trip_seconds",
+            "Request to reply of one act, robot side (s).",
+            (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0),
+        ),  # fmt: skip
+        "holds": m.counter(
+            "mea_robot_holds", "Steps held, by reason (robot side or the server's).", ["reason"]
+        ),
+        "episodes": m.counter("mea_robot_episodes", "Episodes finished, by outcome.", ["outcome"]),
+    }
+    for r in ROBOT_HOLD_REASONS:
+        mx["holds"].labels(r)
+    return mx
+
+
 class RobotLink:
     """The client side of one robot session: requests, the guard thread, the recording."""
 
     def __init__(self, cfg: RobotConfig, bus: Bus, adapter: RobotAdapter, recorder: McapRecorder | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:  # fmt: skip
+                 clock: Callable[[], float] = time.monotonic, metrics: ServiceMetrics | None = None) -> None:  # fmt: skip
         self.cfg, self.bus, self.adapter, self.recorder, self.clock = cfg, bus, adapter, recorder, clock
+        self.mx = robot_metrics(metrics) if metrics is not None else None
         self.safety = RobotSafety(cfg.command_timeout, cfg.require_operator)
         self.server = cfg.server
         self.rng = np.random.default_rng([cfg.jitter_seed, 11])
@@ -203,6 +222,8 @@ class RobotLink:
             log.warning("a reply that does not answer this request was ignored", extra={"step": step})
             return None
         self.round_trips.append(rtt)
+        if self.mx is not None:
+            self.mx["round_trip"].observe(rtt)
         self.compute.append(reply.compute_seconds)
         if self.recorder is not None:
             self.recorder.write(reply)
@@ -240,8 +261,12 @@ class RobotLink:
             if out.terminated or out.truncated:
                 break
         self.safety.last_command = None  # between episodes nothing is commanded
-        self.holds.update(holds)
         r = episode_result(rewards, terminated, seed)
+        self.holds.update(holds)
+        if self.mx is not None:
+            self.mx["episodes"].labels("success" if r.success else "failure").inc()
+            for reason, n in holds.items():
+                self.mx["holds"].labels(reason).inc(n)
         self.results.append(r)
         return {"seed": seed, "success": bool(r.success), "length": r.length, "return": r.ret,
                 "policy_version": reply.policy_version, "holds": dict(holds)}  # fmt: skip
@@ -295,7 +320,7 @@ def run(cfg: RobotConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = N
     try:
         with ServiceContext("robot", cfg.service, bus_factory=make_bus) as ctx:
             assert ctx.bus is not None
-            link = RobotLink(cfg, ctx.bus, adapter, recorder)
+            link = RobotLink(cfg, ctx.bus, adapter, recorder, metrics=ctx.metrics)
             try:
                 summary = drive(cfg, link)
             finally:

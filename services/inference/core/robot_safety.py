@@ -14,8 +14,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-ROBOT_HOLD_REASONS = ("estop", "operator_lost", "server_lost", "watchdog", "no_reply", "refused")
-"""Why the robot side held (the last two: a request timed out; the server would not start an episode)."""
+ROBOT_HOLD_REASONS = ("estop", "operator_lost", "server_lost", "watchdog", "no_reply", "bad_reply")
+"""Why the robot side held (the last two: a request got no reply in time; a reply did not answer it)."""
 
 
 @dataclass
