@@ -43,6 +43,7 @@ import numpy as np
 
 from services.bench.harness import finite, free_port, host_meta, percentile, wait_alive
 from services.bench.report import emit
+from services.inference.main import WEIGHTS_POLL_SECONDS
 
 TASK = "block_pull"
 SESSION = "bench-robot"
@@ -50,8 +51,6 @@ LEARNER = "learner-bench"
 RUN_ID = "bench-serve"
 TARGET_MS = 10.0
 """The cpu-small act round trip p99 must stay under this."""
-SERVER_POLL_S = 0.05
-"""How often `mea serve`'s main loop polls for weights (``services.inference.main.run``)."""
 
 SECTION_ACT = (
     "act round trip (robot -> mea serve over Zenoh, sealed; server time includes the voxel projection)"
@@ -470,7 +469,7 @@ def run(cfg: ServeBenchConfig) -> dict:
     if swap_rows:
         summary = [{"preset": cfg.swap_preset, "swaps": len(swap_rows),
                     "publish -> first action p50 ms": finite(float(np.percentile(swap_ms, 50))),
-                    "max ms": finite(max(swap_ms)), "server weights poll period ms": SERVER_POLL_S * 1e3,
+                    "max ms": finite(max(swap_ms)), "server weights poll period ms": WEIGHTS_POLL_SECONDS * 1e3,
                     "note": "client resets before every act: a new version is pinned at episode start"}]  # fmt: skip
     small = next((r for r in act_rows if r["preset"] == "cpu-small"), None)
     machine = machine_row(cfg)

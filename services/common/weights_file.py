@@ -1,13 +1,16 @@
-"""Weights on disk: each version the learner announces, as one file a server can be pinned to.
+"""Weights on disk: the versions a server can be pinned to, as files.
 
-``<run_dir>/weights/weights-<version>.blob`` holds the ``WeightsBlob``'s msgpack encoding, sealed with
-the run's key (``proto.seal``, key expression ``FILE_KEY``, sender ``learner/<instance>``) when the
-run authenticates, plain otherwise. Written to a temporary name, fsynced and renamed, so a reader
-never sees half a file; the newest ``keep`` stay (``services.common.retention.to_delete``).
+``<learner run_dir>/weights/weights-<version>.blob`` (``RUN_DIR/learner/weights`` under `mea run`)
+holds the ``WeightsBlob``'s msgpack encoding, sealed with the run's key (``proto.seal``, key
+expression ``FILE_KEY``, sender ``learner/<instance>``) when the run authenticates, plain otherwise.
+The learner keeps its newest few; the evaluator keeps every version it evaluated the same way in
+``RUN_DIR/eval/weights`` (sender ``evaluator/<instance>``). Files are written to a temporary name,
+fsynced and renamed, so a reader never sees half a file; the newest ``keep`` stay
+(``services.common.retention.to_delete``).
 
 Reading checks what the bus would check: with the run's key, the seal must verify and name a learner
-(a file sealed by another run, or not sealed at all, is refused); the blob's digest must match its
-tensors (``WeightsBlob`` checks it on decode). Nothing here unpickles.
+or an evaluator (a file sealed by another run, or not sealed at all, is refused); the blob's digest
+must match its tensors (``WeightsBlob`` checks it on decode). Nothing here unpickles.
 """
 
 from __future__ import annotations
@@ -24,6 +27,11 @@ from services.common import retention
 FILE_KEY = "mea/v1/file/weights"
 """The key expression a weights file is sealed under (it never travels on the bus)."""
 DIRECTORY = "weights"
+LEARNER = "learner/weights"
+"""Where `mea run`'s learner writes every version it announces (relative to the run dir)."""
+EVALUATED = "eval/weights"
+"""Where `mea run`'s evaluator keeps the versions it evaluated (relative to the run dir)."""
+WRITERS = ("learner", "evaluator")
 NAME = re.compile(r"weights-(\d+)\.blob")
 KEEP = 3
 
@@ -45,12 +53,12 @@ def versions(directory: Path) -> list[tuple[int, Path]]:
 
 
 def write(directory: Path, blob: WeightsBlob, key: bytes | None = None, instance: str = "learner-0",
-          keep: int = KEEP) -> Path:  # fmt: skip
-    """Write ``blob`` as ``directory/weights-<version>.blob`` (sealed when ``key`` is given) and keep the
-    newest ``keep`` files; returns the path."""
+          keep: int = KEEP, service: str = "learner") -> Path:  # fmt: skip
+    """Write ``blob`` as ``directory/weights-<version>.blob`` (sealed as ``service/instance`` when ``key``
+    is given) and keep the newest ``keep`` files; returns the path."""
     directory.mkdir(parents=True, exist_ok=True)
     body = blob.encode()
-    data = body if key is None else seal(key, FILE_KEY, "learner", instance, body)
+    data = body if key is None else seal(key, FILE_KEY, service, instance, body)
     path = directory / file_name(blob.version)
     tmp = directory / ".weights.blob.tmp"
     with tmp.open("wb") as f:
@@ -65,13 +73,13 @@ def write(directory: Path, blob: WeightsBlob, key: bytes | None = None, instance
 
 
 def resolve(path: Path, version: int | None = None) -> Path:
-    """``path`` itself if it is a file; in a directory (a run dir, the learner's dir or its ``weights/``
-    folder), the file of ``version`` or, without one, the newest."""
+    """``path`` itself if it is a file. In a directory: a run dir (its learner's and its evaluator's
+    weights), the learner's dir, or a folder of weights files; the file of ``version`` or, without
+    one, the newest."""
     if path.is_file():
         return path
-    nested = [d for d in (path / DIRECTORY, path / "learner" / DIRECTORY) if d.is_dir()]
-    directory = nested[0] if nested else path
-    found = versions(directory)
+    dirs = [d for d in (path / LEARNER, path / EVALUATED, path / DIRECTORY) if d.is_dir()] or [path]
+    found = sorted(f for d in dirs for f in versions(d))
     if not found:
         raise WeightsFileError(
             f"{path}: no weights-<version>.blob files (a run dir written by this version of mea?)"
@@ -81,13 +89,13 @@ def resolve(path: Path, version: int | None = None) -> Path:
     for v, p in found:
         if v == version:
             return p
-    have = ", ".join(str(v) for v, _ in found)
-    raise WeightsFileError(f"{path}: no weights file for version {version} (have {have})")
+    have = ", ".join(str(v) for v, _ in found[-20:])
+    raise WeightsFileError(f"{path}: no weights file for version {version} (the newest: {have})")
 
 
 def read(path: Path, key: bytes | None, limits: Limits = DEFAULT_LIMITS) -> WeightsBlob:
-    """The blob in ``path``, checked: with ``key`` its seal must verify and name a learner; its digest
-    must match. ``key`` None reads only unsealed files (a run that did not authenticate)."""
+    """The blob in ``path``, checked: with ``key`` its seal must verify and name a learner or an
+    evaluator; its digest must match. ``key`` None reads only unsealed files (a run that did not authenticate)."""
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -95,8 +103,8 @@ def read(path: Path, key: bytes | None, limits: Limits = DEFAULT_LIMITS) -> Weig
     try:
         if key is not None:
             sealed = unseal(key, FILE_KEY, data)
-            if sealed.service != "learner":
-                raise ProtocolError("<sender>", f"written by {sealed.sender}, not a learner")
+            if sealed.service not in WRITERS:
+                raise ProtocolError("<sender>", f"written by {sealed.sender}, not a learner or an evaluator")
             data = sealed.body
         elif is_sealed(data):
             raise WeightsFileError(

@@ -43,6 +43,9 @@ class EvaluatorConfig:
     """Stop after this many evaluations (0: until stopped)."""
     first_gate_wait: float = 2.0
     """Before the first evaluation, wait this long (s) for a replay gate so the version gets its env steps."""
+    keep_weights: int = 100
+    """Keep the weights of the newest this many evaluated versions in RUN_DIR/eval/weights (0: none), so a
+    version the history scored can be served (`mea serve --weights RUN_DIR --version N`)."""
     torch_threads: int = 1
     """torch intra-op threads for the policy (0: torch's default)."""
     service: ServiceConfig = ServiceConfig()
@@ -59,8 +62,15 @@ class EvaluatorConfig:
                 "every_env_steps, final_env_steps, final_episodes, max_evaluations and first_gate_wait "
                 "must be >= 0"
             )
-        if self.seed_base < 0 or self.torch_threads < 0 or self.points_per_segment < 1:
-            raise ValueError("seed_base and torch_threads must be >= 0, points_per_segment >= 1")
+        if (
+            self.seed_base < 0
+            or self.torch_threads < 0
+            or self.points_per_segment < 1
+            or self.keep_weights < 0
+        ):
+            raise ValueError(
+                "seed_base, torch_threads and keep_weights must be >= 0, points_per_segment >= 1"
+            )
 
     def env_settings(self) -> EnvSettings:
         return EnvSettings(

@@ -35,7 +35,7 @@ from collections.abc import Callable, Sequence
 
 from proto.topics import EVAL_REPORTS, REPLAY_GATE
 from proto.weights import WeightsBlob
-from services.common import config
+from services.common import config, weights_file
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
 from services.common.replay_gate import GateTracker
@@ -170,6 +170,7 @@ class Evaluator:
                 append_history(self.history_path, record)
             except OSError:
                 log.exception("could not append to the eval history", extra={"path": str(self.history_path)})
+        self._keep_weights(blob)
         self._account(ev)
         s = ev.summary
         log.info("evaluated", extra={"version": blob.version, "env_steps": env_steps,
@@ -177,6 +178,18 @@ class Evaluator:
                                      "grasp_score": s.grasp_score, "improvement_env_steps": self.improvement,
                                      "seconds": round(ev.wall_seconds, 2)})  # fmt: skip
         return record
+
+    def _keep_weights(self, blob: WeightsBlob) -> None:
+        """Keep the evaluated version beside its history line (the learner keeps only its newest), so
+        `mea serve --weights RUN_DIR --version N` can serve any version the history scored."""
+        if self.cfg.run_dir is None or self.cfg.keep_weights == 0:
+            return
+        creds = self.ctx.bus.credentials  # type: ignore[union-attr]
+        try:
+            weights_file.write(self.cfg.run_dir / weights_file.EVALUATED, blob, None if creds is None else creds.key,
+                               self.ctx.instance, keep=self.cfg.keep_weights, service="evaluator")  # fmt: skip
+        except OSError:
+            log.exception("could not keep the evaluated weights", extra={"version": blob.version})
 
     def _account(self, ev: Evaluation) -> None:
         version, env_steps, s = ev.version, ev.env_steps, ev.summary

@@ -43,6 +43,8 @@ from services.inference.core.envelope import CLAMP_REASONS, HOLD_REASONS
 from services.inference.core.sessions import REFUSAL_REASONS, SESSION_HOLDS, InferenceCore, SwapRefusedError
 
 log = logging.getLogger(__name__)
+WEIGHTS_POLL_SECONDS = 0.01
+"""How often the main loop looks for announced weights and e-stops."""
 _LATENCY = (0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.02, 0.05, 0.1, 0.25)
 
 
@@ -254,7 +256,7 @@ def run(cfg: ServeConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = N
         try:
             while not ctx.shutdown.is_set():
                 server.step()
-                ctx.shutdown.wait(0.01)  # a new version is picked up within 10 ms of its announcement
+                ctx.shutdown.wait(WEIGHTS_POLL_SECONDS)
         finally:
             for h in holder["handles"]:  # type: ignore[attr-defined]
                 h.close()

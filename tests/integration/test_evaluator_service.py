@@ -136,6 +136,11 @@ def test_evaluator_reports_versions_on_held_out_seeds_at_the_env_step_cadence(tm
         assert sum(h["successes"]) / 2 == h["success_rate"]
         assert np.mean(h["lengths"]) == h["mean_length"]
     json.loads((tmp_path / "eval" / "history.jsonl").read_text().splitlines()[0])  # one object per line
+    # every evaluated version is kept beside the history, so it can be served later
+    from services.common import weights_file
+
+    assert [v for v, _ in weights_file.versions(tmp_path / "eval" / "weights")] == [3, 6]
+    assert weights_file.read(weights_file.resolve(tmp_path, 3), None).digest == blob(3).digest
 
     last = latest_beat(status, beats)
     assert last is not None and last.policy_version == 6
@@ -196,7 +201,7 @@ def _cadence_evaluator(tmp_path, **kw):
     from services.common.runtime import Shutdown
     from services.evaluator.main import Evaluator
 
-    cfg = EvaluatorConfig(run_dir=tmp_path, first_gate_wait=60.0, **kw)
+    cfg = EvaluatorConfig(run_dir=tmp_path, first_gate_wait=60.0, keep_weights=0, **kw)  # schedule only: fake blobs
     ctx = SimpleNamespace(metrics=ServiceMetrics("evaluator", "evaluator-u"), instance="evaluator-u",
                           shutdown=Shutdown(install_signals=False), bus=None, policy_version=-1, detail="")  # fmt: skip
     gate = GateTracker(SimpleNamespace(drain=list))

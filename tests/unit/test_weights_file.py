@@ -80,3 +80,11 @@ def test_unreadable_file_is_named(tmp_path):
         path = tmp_path / "missing.blob"
     with pytest.raises(WeightsFileError, match="cannot read"):
         weights_file.read(path, None)
+
+
+def test_the_evaluators_kept_versions_are_found_in_a_run_dir_and_accepted(tmp_path):
+    weights_file.write(tmp_path / weights_file.LEARNER, blob(9), KEY, "learner-0")
+    weights_file.write(tmp_path / weights_file.EVALUATED, blob(4), KEY, "evaluator-0", service="evaluator")
+    assert weights_file.resolve(tmp_path).name == "weights-00000009.blob"  # the newest of either
+    old = weights_file.resolve(tmp_path, 4)
+    assert old.parent == tmp_path / "eval" / "weights" and weights_file.read(old, KEY).version == 4
