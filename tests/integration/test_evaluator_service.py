@@ -201,7 +201,8 @@ def _cadence_evaluator(tmp_path, **kw):
     from services.common.runtime import Shutdown
     from services.evaluator.main import Evaluator
 
-    cfg = EvaluatorConfig(run_dir=tmp_path, first_gate_wait=60.0, keep_weights=0, **kw)  # schedule only: fake blobs
+    # keep_weights 0: these tests drive the schedule with fake blobs
+    cfg = EvaluatorConfig(run_dir=tmp_path, first_gate_wait=60.0, keep_weights=0, **kw)
     ctx = SimpleNamespace(metrics=ServiceMetrics("evaluator", "evaluator-u"), instance="evaluator-u",
                           shutdown=Shutdown(install_signals=False), bus=None, policy_version=-1, detail="")  # fmt: skip
     gate = GateTracker(SimpleNamespace(drain=list))
