@@ -151,7 +151,7 @@ class EpisodeRecorder:
 
 
 def _launcher_metrics(cfg: RunConfig, router: Bus) -> ServiceMetrics:
-    metrics = ServiceMetrics("launcher", "launcher")
+    metrics = ServiceMetrics("launcher", "launcher", cfg.namespace)
     metrics.watch_bus(router)
     if cfg.metrics_port:
         try:

@@ -78,13 +78,14 @@ class _BusCollector(Collector):
 class ServiceMetrics:
     """Collectors every service has; services add their own via the helpers below."""
 
-    def __init__(self, service: str, instance: str) -> None:
+    def __init__(self, service: str, instance: str, namespace: str = "default") -> None:
         self.registry = CollectorRegistry()
         ProcessCollector(registry=self.registry)
         PlatformCollector(registry=self.registry)
         self.service = service
         info = Info("mea_service", "Service identity.", registry=self.registry)
-        info.info({"service": service, "service_instance": instance, "pid": str(os.getpid())})
+        info.info({"service": service, "service_instance": instance, "pid": str(os.getpid()),
+                   "namespace": namespace})  # fmt: skip
         self.started = time.time()
         Gauge("mea_start_time_seconds", "UNIX time the service started.", registry=self.registry).set(
             self.started

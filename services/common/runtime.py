@@ -152,7 +152,7 @@ class ServiceContext:
         self.state = "starting"
         self.detail = ""
         self.started_at = time.time()
-        self.metrics = ServiceMetrics(self.service, self.instance)
+        self.metrics = ServiceMetrics(self.service, self.instance, self.cfg.zenoh.namespace)
         self.bus: Bus | None = None
         self._token = None
         self._hb_thread: threading.Thread | None = None

@@ -96,6 +96,7 @@ def test_service_context_heartbeats_liveliness_and_metrics():
         "mea_policy_version" in body
         and 'service_instance="learner-0"' in body
         and "mea_service_info{" in body
+        and 'namespace="default"' in body  # dashboards filter by it
         and 'instance="learner-0"' not in body.replace("service_instance", "")
     )
     assert observer.stats.bad["status"] == 1
