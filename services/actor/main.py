@@ -77,6 +77,10 @@ def _metrics(ctx: ServiceContext):
             "mea_actor_resent_episodes",
             "Episodes published again (no ack yet when a consumer restarted or in time).",
         ),
+        "evicted": m.counter(
+            "mea_actor_evicted_episodes",
+            "Unacknowledged episodes let go because the outbox was full and no learner was ever seen.",
+        ),
         "unacked": m.gauge(
             "mea_actor_unacked_episodes", "Published episodes the learner has not acknowledged."
         ),
@@ -100,7 +104,12 @@ class Delivery:
 
     def publish(self, episode) -> None:
         self.ctx.bus.publish(EPISODES_RAW, episode, source=self.ctx.instance)
+        evicted = self.outbox.evicted
         self.outbox.sent(episode.episode_id, episode, time.monotonic())
+        if self.outbox.evicted > evicted:
+            self.mx["evicted"].inc(self.outbox.evicted - evicted)
+            log.warning("unacknowledged episodes let go: no learner has acknowledged them",
+                        extra={"evicted_total": self.outbox.evicted})  # fmt: skip
         self.mx["unacked"].set(len(self.outbox))
 
     def learner_alive(self) -> bool:
@@ -115,11 +124,17 @@ class Delivery:
             self.mx["resent"].inc()
         self.mx["unacked"].set(len(self.outbox))
 
+    def learner_expected(self) -> bool:
+        """A learner is alive, or was and is gone (crashed, restarting, or cut off by the network):
+        its acks are expected, so nothing it has not acknowledged may be let go."""
+        return self.learner_alive() or self.watch.came_alive(("learner",)) is not None
+
     def wait_for_room(self) -> None:
-        """With a learner alive, wait while the outbox is full (acks free it, resends go out)."""
+        """While a learner is expected, wait while the outbox is full (acks free it, resends go out).
+        Only an actor that never saw a learner (collecting data alone) lets its oldest go, counted."""
         t0 = time.monotonic()
         self.tend()
-        while self.outbox.full and self.learner_alive() and not self.ctx.shutdown.wait(0.1):
+        while self.outbox.full and self.learner_expected() and not self.ctx.shutdown.wait(0.1):
             self.tend()
         self.mx["ack_wait"].inc(time.monotonic() - t0)
 
