@@ -205,8 +205,17 @@ def run(cfg: ServeConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = N
     """Serve until stopped; ``ready(server)`` is called once it answers queries (tests)."""
     import torch
 
+    threads = torch.get_num_threads()
     if cfg.torch_threads > 0:
         torch.set_num_threads(cfg.torch_threads)
+    try:
+        return _run(cfg, bus_factory, ready)
+    finally:
+        torch.set_num_threads(threads)  # in-process callers (tests, benches) get their setting back
+
+
+def _run(cfg: ServeConfig, bus_factory: Callable[[ServiceConfig], Bus] | None,
+         ready: Callable[[Server], None] | None) -> int:  # fmt: skip
     holder: dict[str, object] = {}
 
     def answer(kind: str):

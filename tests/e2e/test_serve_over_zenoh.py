@@ -103,13 +103,19 @@ def test_sim_robot_over_zenoh_matches_the_evaluator_and_strangers_get_nothing(tm
         log = serve.stdout.read() if serve.stdout else ""
     assert serve.returncode == 0, log[-4000:]
 
-    # the evaluator's episodes on the same seeds, action for action
+    # the evaluator's episodes on the same seeds, action for action, on one torch thread as the
+    # evaluator and the server run (another thread count sums convolutions in another order)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
     runtime = PolicyRuntime(deterministic=True)
     runtime.load(weights_file.read(weights_file.resolve(tmp_path / "weights"), key))
     taken: list[np.ndarray] = []
     act = runtime.act
     runtime.act = lambda image: taken.append(act(image)) or taken[-1]  # type: ignore[method-assign]
-    results = EpisodeRunner(env, "block_pull", "evaluator-0").episodes(runtime, summary["seeds"])
+    try:
+        results = EpisodeRunner(env, "block_pull", "evaluator-0").episodes(runtime, summary["seeds"])
+    finally:
+        torch.set_num_threads(threads)
     assert [(r.seed, r.success, r.length, r.ret) for r in results] == [
         (e["seed"], e["success"], e["length"], e["return"]) for e in summary["episodes"]
     ]

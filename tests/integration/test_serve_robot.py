@@ -37,6 +37,16 @@ from services.tasks import make_env
 SPEC = PolicySpec(PRESETS["cpu-small"])
 
 
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """The server, the evaluator and the reference runtimes here on one thread each, as deployed:
+    another thread count sums convolutions in another order, and actions are compared bit for bit."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def blob(version: int, seed: int = 0) -> WeightsBlob:
     torch.manual_seed(seed)
     return WeightsBlob.create(
