@@ -155,7 +155,7 @@ def _launcher_metrics(cfg: RunConfig, router: Bus) -> ServiceMetrics:
     metrics.watch_bus(router)
     if cfg.metrics_port:
         try:
-            metrics.serve("127.0.0.1", cfg.metrics_port)
+            metrics.serve(cfg.metrics_addr, cfg.metrics_port)
         except OSError as exc:
             log.warning("launcher /metrics not served", extra={"port": cfg.metrics_port, "error": str(exc)})
     return metrics
@@ -282,7 +282,9 @@ def _router(cfg: RunConfig) -> Bus:
     """The launcher's own bus: the embedded Zenoh router, or the hub of the in-process bus."""
     if cfg.in_process:
         return InProcBus(Hub(), namespace=cfg.namespace)
-    return ZenohBus(ZenohConfig(mode="router", listen=(cfg.listen,), namespace=cfg.namespace))
+    return ZenohBus(
+        ZenohConfig(mode="router", listen=(cfg.listen,), connect=cfg.connect, namespace=cfg.namespace)
+    )
 
 
 def _starter(cfg: RunConfig, router: Bus, shutdown: Shutdown) -> Callable[[ChildSpec], Any]:

@@ -58,19 +58,21 @@ def service_settings(run: RunConfig, run_dir: Path, service: str, index: int) ->
         instance_id=f"{service}-{index}",
         zenoh=ZenohConfig(connect=(run.listen,), namespace=run.namespace),
         metrics_port=metrics_port(run, service, index),
+        metrics_addr=run.metrics_addr,
         log_format=run.log_format,
         run_key_file=key_file(run, run_dir),
     )
 
 
 def actor_config(run: RunConfig, index: int, service: ServiceConfig) -> ActorConfig:
-    """Actor ``index``: the learned policy when the run has a learner (random otherwise),
+    """Actor ``index``: the learned policy when the run has a learner, here or on a host it connects
+    to (random otherwise),
     demonstrations and the random prefill from actor 0 only (not again on resume or restart), the depth image where the variant
     observes it, and a seed base that moves on with every resume (``proto.seeds``)."""
     return ActorConfig(
         task=run.task,
         index=index,
-        policy="learned" if "learner" in run.services else "random",
+        policy="learned" if "learner" in run.services or run.connect else "random",
         seed_base=actor_seed_base(run.seed, run.resumes),
         demos=run.resolved_demos() if index == 0 and run.resume is None else 0,
         random_steps=run.resolved_random_steps() if index == 0 and run.resume is None else 0,

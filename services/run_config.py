@@ -87,6 +87,9 @@ class RunConfig:
     """Run directory (config, checkpoints, eval history, recordings); default runs/<time>-<task>-<variant>."""
     listen: str = "tcp/127.0.0.1:7447"
     """Endpoint of the embedded Zenoh router; services connect to it."""
+    connect: tuple[str, ...] = ()
+    """Routers on other hosts the embedded router meshes with (e.g. `tcp/10.0.0.5:7447`; one run across
+    hosts: deploy/multihost.md). With it, actors follow the learned policy even without a learner here."""
     namespace: str = "default"
     """Key namespace of this run (separates runs sharing a Zenoh network)."""
     authenticate: bool = True
@@ -97,6 +100,8 @@ class RunConfig:
     """Port base of the run's /metrics: the launcher serves it (router traffic, services alive), each
     service the base plus its offset (learner +1, augmenter +2, evaluator +3, actor i +10+i; README).
     A second run on one host takes another base (e.g. 9200). 0 disables every /metrics."""
+    metrics_addr: str = "127.0.0.1"
+    """Address every /metrics of the run binds to (0.0.0.0: reachable by a Prometheus on another host)."""
     duration_seconds: float = 0.0
     """Stop after this many seconds (0: run until Ctrl-C / SIGTERM)."""
     stop_grace_seconds: float = 30.0
@@ -198,8 +203,8 @@ def recording_metadata(cfg: RunConfig) -> dict[str, str]:
     return {"task": cfg.task, "variant": cfg.variant, "seed": str(cfg.seed), "resumes": str(cfg.resumes)}
 
 
-_MACHINE_FIELDS = ("listen", "metrics_port", "duration_seconds", "stop_grace_seconds", "log_format",
-                   "final_eval_seconds", "in_process")  # fmt: skip
+_MACHINE_FIELDS = ("listen", "connect", "metrics_port", "metrics_addr", "duration_seconds", "stop_grace_seconds",
+                   "log_format", "final_eval_seconds", "in_process")  # fmt: skip
 """Fields a resumed run takes from the command line rather than from the run's saved config."""
 
 

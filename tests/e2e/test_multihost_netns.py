@@ -162,7 +162,10 @@ def _wait(what: str, hosts: Hosts, cond, timeout: float, every: float = 2.0):
 
 
 @pytest.mark.timeout(240)
-def test_training_across_two_namespaces_survives_a_cable_pull(tmp_path):
+@pytest.mark.parametrize("host_a", ["services", "mea-run"])
+def test_training_across_two_namespaces_survives_a_cable_pull(tmp_path, host_a):
+    """``host_a``: A runs `mea router --connect` and `mea actor` by hand ("services"), or one
+    `mea run --services actor --connect tcp/B:7447` whose embedded router meshes with B's ("mea-run")."""
     if os.geteuid() != 0:
         pytest.skip("needs root: creates network namespaces and a veth pair (`ip netns`, `ip link`)")
     if shutil.which("ip") is None:
@@ -196,12 +199,22 @@ def test_training_across_two_namespaces_survives_a_cable_pull(tmp_path):
 
         # host A: a router meshed with B's, and one actor (demo first, then the learned policy)
         common = ["--service.zenoh.namespace", NAMESPACE, "--service.run-key-file", str(key_a), "--service.log-format", "text"]  # fmt: skip
-        router = hosts.start("host-a-router", a, "router", "--listen", "tcp/127.0.0.1:7447",
-                             "--connect", f"tcp/{hosts.addr_b}:7447", *common)  # fmt: skip
-        actor = hosts.start("host-a-actor", a, "actor", "--task", "block_pull", "--policy", "learned",
-                            "--demos", "1", "--index", "0", "--service.instance-id", "actor-0",
-                            "--service.zenoh.mode", "client", "--service.zenoh.connect", "tcp/127.0.0.1:7447",
-                            *common)  # fmt: skip
+        if host_a == "services":
+            router = hosts.start("host-a-router", a, "router", "--listen", "tcp/127.0.0.1:7447",
+                                 "--connect", f"tcp/{hosts.addr_b}:7447", *common)  # fmt: skip
+            actor = hosts.start("host-a-actor", a, "actor", "--task", "block_pull", "--policy", "learned",
+                                "--demos", "1", "--index", "0", "--service.instance-id", "actor-0",
+                                "--service.zenoh.mode", "client", "--service.zenoh.connect", "tcp/127.0.0.1:7447",
+                                *common)  # fmt: skip
+        else:  # the run's key goes into A's run dir, where `mea run` looks for it
+            (dir_a / "run").mkdir()
+            shutil.copyfile(key_a, dir_a / "run" / "run.key")
+            (dir_a / "run" / "run.key").chmod(0o600)
+            router = hosts.start("host-a", a, "run", "--services", "actor", "--connect", f"tcp/{hosts.addr_b}:7447",
+                                 "--listen", "tcp/127.0.0.1:7447", "--namespace", NAMESPACE, "--run-dir",
+                                 str(dir_a / "run"), "--task", "block_pull", "--demos", "1", "--env-steps", "0",
+                                 "--log-format", "text")  # fmt: skip
+            actor = None  # a child of A's launcher: known by the pid serving its /metrics
 
         def learner_steps() -> float:
             return hosts.value(b, PORTS["learner"], "mea_learner_env_steps")
@@ -220,11 +233,12 @@ def test_training_across_two_namespaces_survives_a_cable_pull(tmp_path):
             raw_episodes_in=raw_in,
         )
         assert raw_in >= 1
+        actor_pid = actor.pid if actor is not None else hosts.pid_of(a, PORTS["actor"])
         pids = {
-            "launcher": launcher.pid, "router-a": router.pid, "actor": actor.pid,
+            "launcher": launcher.pid, "router-a": router.pid, "actor": actor_pid,
             **{svc: hosts.pid_of(b, PORTS[svc]) for svc in ("learner", "augmenter", "evaluator")},
         }  # fmt: skip
-        assert hosts.pid_of(a, PORTS["actor"]) == actor.pid and None not in pids.values(), pids
+        assert hosts.pid_of(a, PORTS["actor"]) == actor_pid and None not in pids.values(), pids
 
         # (b) the cable is pulled for longer than the lease
         steps_down, version_down = learner_steps(), actor_version()
@@ -266,7 +280,7 @@ def test_training_across_two_namespaces_survives_a_cable_pull(tmp_path):
         assert set(unauth.values()) == {0.0}, unauth
 
         # a clean stop: A first, then B (its summary: every episode recorded once, no exits)
-        for name in ("host-a-actor", "host-a-router"):
+        for name in ("host-a-actor", "host-a-router") if host_a == "services" else ("host-a",):
             hosts.stop(name, 20)
         rc = hosts.stop("host-b", 60)
         summary = json.loads((run_b / "summary.json").read_text())

@@ -255,3 +255,14 @@ def test_surgical_runs_take_the_gasv2_variants_and_learner(tmp_path):
     assert plain.augment.mea_on == "none"
     with pytest.raises(ValueError, match="has no gasv2 learner"):
         dataclasses.replace(run, learner_preset="cpu-small-state")
+
+
+def test_a_run_that_connects_to_another_hosts_router_runs_learned_actors_and_binds_metrics_where_told(
+    tmp_path,
+):
+    alone = RunConfig(task="block_pull", services=("actor",))
+    assert actor_cfg(alone, tmp_path).policy == "random"  # no learner anywhere: nothing to follow
+    remote = dataclasses.replace(alone, connect=("tcp/10.0.0.5:7447",), metrics_addr="0.0.0.0")
+    cfg = actor_cfg(remote, tmp_path)
+    assert cfg.policy == "learned" and cfg.service.metrics_addr == "0.0.0.0"
+    assert cfg.service.zenoh.connect == (remote.listen,)  # services still join the run's own router
