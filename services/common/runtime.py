@@ -42,6 +42,21 @@ def stopped_by(parent: Shutdown) -> Iterator[None]:
         _scope.parent = previous
 
 
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op threads set to ``n`` inside the block (0: left as they are), the caller's
+    setting back after it (services run in-process in tests and benches)."""
+    import torch  # only the services that run a policy pay for the import
+
+    threads = torch.get_num_threads()
+    if n > 0:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 class Shutdown:
     """Set on SIGTERM/SIGINT (or by the owner, or by the parent given by ``stopped_by``); loops poll
     ``is_set`` or ``wait``."""

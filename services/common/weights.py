@@ -36,9 +36,10 @@ class WeightsServer:
         with self._lock:
             return self._payload if self._payload is not None and self._version >= min_version else None
 
-    def publish(self, blob: WeightsBlob) -> int:
-        """Make ``blob`` the latest version and announce it; returns its encoded size."""
-        payload = blob.encode()
+    def publish(self, blob: WeightsBlob, payload: bytes | None = None) -> int:
+        """Make ``blob`` the latest version and announce it; returns its encoded size. ``payload``:
+        ``blob.encode()`` when the caller has it already."""
+        payload = blob.encode() if payload is None else payload
         with self._lock:
             if blob.version <= self._version:
                 raise ValueError(f"weights version {blob.version} is not newer than {self._version}")

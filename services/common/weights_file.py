@@ -53,11 +53,12 @@ def versions(directory: Path) -> list[tuple[int, Path]]:
 
 
 def write(directory: Path, blob: WeightsBlob, key: bytes | None = None, instance: str = "learner-0",
-          keep: int = KEEP, service: str = "learner") -> Path:  # fmt: skip
+          keep: int = KEEP, service: str = "learner", body: bytes | None = None) -> Path:  # fmt: skip
     """Write ``blob`` as ``directory/weights-<version>.blob`` (sealed as ``service/instance`` when ``key``
-    is given) and keep the newest ``keep`` files; returns the path."""
+    is given) and keep the newest ``keep`` files; returns the path. ``body``: ``blob.encode()`` when
+    the caller has it already."""
     directory.mkdir(parents=True, exist_ok=True)
-    body = blob.encode()
+    body = blob.encode() if body is None else body
     data = body if key is None else seal(key, FILE_KEY, service, instance, body)
     path = directory / file_name(blob.version)
     tmp = directory / ".weights.blob.tmp"

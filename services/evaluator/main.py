@@ -39,7 +39,7 @@ from services.common import config, weights_file
 from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
 from services.common.replay_gate import GateTracker
-from services.common.runtime import ServiceContext, subscribing_bus_factory
+from services.common.runtime import ServiceContext, subscribing_bus_factory, torch_threads
 from services.common.weights import WeightsClient
 from services.evaluator.config import PRESETS, EvaluatorConfig
 from services.evaluator.core.metrics import EvalSummary, run_improvement_timestep
@@ -225,15 +225,8 @@ class Evaluator:
 def run(cfg: EvaluatorConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = None,
         env: ManipulationEnv | None = None) -> int:  # fmt: skip
     """Run the evaluator until stopped (or ``max_evaluations``); ``env`` replaces its own env (tests)."""
-    import torch
-
-    threads = torch.get_num_threads()
-    if cfg.torch_threads > 0:
-        torch.set_num_threads(cfg.torch_threads)
-    try:
+    with torch_threads(cfg.torch_threads):
         return _run(cfg, bus_factory, env)
-    finally:
-        torch.set_num_threads(threads)  # in-process callers (tests) get their setting back
 
 
 def _run(cfg: EvaluatorConfig, bus_factory: Callable[[ServiceConfig], Bus] | None,

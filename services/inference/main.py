@@ -27,20 +27,24 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-import numpy as np
-
-from proto.actions import ACTION_DIM, JAW
-from proto.inference import ActReply, ActRequest, ResetReply, ResetRequest
+from proto.inference import ActRequest, ResetRequest
 from proto.topics import ESTOP, SERVE_ACT, SERVE_RESET, WEIGHTS_ANNOUNCE, WEIGHTS_LATEST
 from services.common import config, run_key, weights_file
 from services.common.bus.base import Bus, Delivery
 from services.common.config import ServiceConfig
 from services.common.metrics import ServiceMetrics
-from services.common.runtime import ServiceContext, subscribing_bus_factory
+from services.common.runtime import ServiceContext, subscribing_bus_factory, torch_threads
 from services.common.weights import WeightsClient
 from services.inference.config import PRESETS, ServeConfig
 from services.inference.core.envelope import CLAMP_REASONS, HOLD_REASONS
-from services.inference.core.sessions import REFUSAL_REASONS, SESSION_HOLDS, InferenceCore, SwapRefusedError
+from services.inference.core.sessions import (
+    REFUSAL_REASONS,
+    SESSION_HOLDS,
+    InferenceCore,
+    SwapRefusedError,
+    refused_reset,
+    sessionless_hold,
+)
 
 log = logging.getLogger(__name__)
 WEIGHTS_POLL_SECONDS = 0.01
@@ -84,16 +88,8 @@ def serve_metrics(m: ServiceMetrics) -> dict:
 def _starting(d: Delivery, kind: str):
     """The answer while the server is still loading its policy."""
     if kind == "reset":
-        return ResetReply(session=d.message.session, accepted=False, reason="server starting", episode=0,
-                          policy_version=-1, run_id="", observation="")  # fmt: skip
-    return _held(d.message, "no_policy")
-
-
-def _held(req: ActRequest, reason: str) -> ActReply:
-    hold = np.zeros(ACTION_DIM, np.float32)
-    hold[JAW] = 1.0 if np.isfinite(req.state[4]) and req.state[4] >= 0.5 else -1.0
-    return ActReply(session=req.session, episode=req.episode, step=req.step, action=hold, policy_version=-1,
-                    held=True, reasons=[reason], compute_seconds=0.0, nonce=req.nonce)  # fmt: skip
+        return refused_reset(d.message.session, "server starting")
+    return sessionless_hold(d.message, "no_policy", d.message.episode)
 
 
 class Server:
@@ -148,8 +144,7 @@ class Server:
             reply = self.core.reset(req, time.monotonic(), d.sender)
         except Exception as exc:  # noqa: BLE001 - the robot gets a refusal, never silence
             log.exception("reset failed", extra={"session": req.session})
-            reply = ResetReply(session=req.session, accepted=False, reason=f"server error: {exc}"[:256], episode=0,
-                               policy_version=-1, run_id="", observation="")  # fmt: skip
+            reply = refused_reset(req.session, f"server error: {exc}")
         self.counts["resets"] += 1
         self.mx["requests"].labels("reset").inc()
         self.mx["sessions"].set(len(self.core.sessions))
@@ -163,7 +158,7 @@ class Server:
             reply = self.core.act(req, time.monotonic(), time.time(), d.sender)
         except Exception:  # noqa: BLE001 - the robot gets a hold with the reason, never silence
             log.exception("act failed", extra={"session": req.session, "step": req.step})
-            reply = _held(req, "server_error")
+            reply = sessionless_hold(req, "server_error", req.episode)
         self.counts["acts"] += 1
         self.mx["requests"].labels("act").inc()
         self.mx["act_seconds"].observe(reply.compute_seconds)
@@ -203,15 +198,8 @@ class Server:
 def run(cfg: ServeConfig, bus_factory: Callable[[ServiceConfig], Bus] | None = None,
         ready: Callable[[Server], None] | None = None) -> int:  # fmt: skip
     """Serve until stopped; ``ready(server)`` is called once it answers queries (tests)."""
-    import torch
-
-    threads = torch.get_num_threads()
-    if cfg.torch_threads > 0:
-        torch.set_num_threads(cfg.torch_threads)
-    try:
+    with torch_threads(cfg.torch_threads):
         return _run(cfg, bus_factory, ready)
-    finally:
-        torch.set_num_threads(threads)  # in-process callers (tests, benches) get their setting back
 
 
 def _run(cfg: ServeConfig, bus_factory: Callable[[ServiceConfig], Bus] | None,

@@ -169,10 +169,11 @@ class Learner:
         blob = WeightsBlob.create(
             self.version, self.cfg.algorithm, self.run_id, self.trainer.policy_tensors(), self.spec.to_json()
         )
-        self.server.publish(blob)
+        payload = blob.encode()  # once, for the bus and the weights file
+        self.server.publish(blob, payload)
         creds = self.ctx.bus.credentials
-        weights_file.write(self.cfg.run_dir / weights_file.DIRECTORY, blob,
-                           None if creds is None else creds.key, self.ctx.instance)  # fmt: skip
+        weights_file.write(self.cfg.run_dir / weights_file.DIRECTORY, blob, None if creds is None else creds.key,
+                           self.ctx.instance, body=payload)  # fmt: skip
         self.ctx.policy_version = self.version
         self.mx["version"].set(self.version)
         self.mx["publish_seconds"].observe(time.perf_counter() - t0)

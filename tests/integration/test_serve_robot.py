@@ -67,6 +67,13 @@ def limits_file(tmp_path, env) -> str:
     return str(path)
 
 
+def _until(pred, timeout: float) -> None:
+    """Poll ``pred`` until it holds or ``timeout`` seconds pass (the caller asserts what it needs)."""
+    deadline = time.monotonic() + timeout
+    while not pred() and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
 class Serving:
     """`mea serve` on a thread of this process, on the hub's bus."""
 
@@ -276,9 +283,7 @@ def test_liveliness_loss_and_estop_make_the_robot_hold(cause):
             operator_bus.publish(
                 ESTOP, EStop(operator_id="op-1", engaged=False, created_at=time.time()), source="op-1"
             )
-            deadline = time.monotonic() + 2
-            while link.hold_reason() is not None and time.monotonic() < deadline:
-                time.sleep(0.01)
+            _until(lambda: link.hold_reason() is None, 2)
             assert link.hold_reason() is None
     finally:
         link.close()
@@ -295,9 +300,7 @@ def test_an_engaged_estop_holds_at_the_server_too(tmp_path):
         operator.publish(
             ESTOP, EStop(operator_id="op-1", engaged=True, created_at=time.time()), source="op-1"
         )
-        deadline = time.monotonic() + 5
-        while not serving.server.core.estop and time.monotonic() < deadline:
-            time.sleep(0.02)
+        _until(lambda: serving.server.core.estop, 5)
         core = serving.server.core
         r = core.reset(
             ResetRequest(session="arm-1", task="block_pull", created_at=time.time()), time.monotonic()
@@ -326,15 +329,11 @@ def test_an_unsigned_blob_is_refused_and_the_signed_version_keeps_serving(tmp_pa
     cfg = ServeConfig(service=dataclasses.replace(svc("inference-0"), run_key_file=str(key_file)))
     serving = Serving(cfg, hub)
     try:
-        deadline = time.monotonic() + 10
-        while serving.server.core.current is None and time.monotonic() < deadline:
-            time.sleep(0.02)
+        _until(lambda: serving.server.core.current is not None, 10)
         assert serving.server.core.current.version == 1
         rogue = WeightsServer(InProcBus(hub), "learner-9")  # no key: nothing it sends is sealed
         rogue.publish(blob(2, seed=4))
-        deadline = time.monotonic() + 10
-        while serving.server.counts["refused"] == 0 and time.monotonic() < deadline:
-            time.sleep(0.02)
+        _until(lambda: serving.server.counts["refused"] > 0, 10)
         assert serving.server.counts["refused"] >= 1
         assert serving.server.mx["refused"].labels("invalid")._value.get() >= 1
         robot = InProcBus(hub)

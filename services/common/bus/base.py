@@ -259,22 +259,21 @@ class Bus(ABC):
         full = {p: parts.get(p, "*") for p in topic.placeholders}
         return key(topic, self.namespace, **full)
 
-    def encode_for(self, topic: Topic, msg: Message | bytes, key_expr: str) -> bytes:
-        if isinstance(msg, (bytes, bytearray)):
-            body = bytes(msg)  # pre-encoded (e.g. a weights blob served many times)
-        elif topic.message is None or not isinstance(msg, topic.message):
-            raise TypeError(f"{topic.name} carries {topic.message}, not {type(msg).__name__}")
-        else:
-            body = msg.encode()
+    def _seal(self, key_expr: str, body: bytes) -> bytes:
         c = self.credentials
         return body if c is None else seal(c.key, key_expr, c.service, c.instance, body)
+
+    def encode_for(self, topic: Topic, msg: Message | bytes, key_expr: str) -> bytes:
+        if isinstance(msg, (bytes, bytearray)):
+            return self._seal(key_expr, bytes(msg))  # pre-encoded (e.g. a weights blob served many times)
+        if topic.message is None or not isinstance(msg, topic.message):
+            raise TypeError(f"{topic.name} carries {topic.message}, not {type(msg).__name__}")
+        return self._seal(key_expr, msg.encode())
 
     def encode_request(self, topic: Topic, msg: Message, key_expr: str) -> bytes:
         if topic.request is None or not isinstance(msg, topic.request):
             raise TypeError(f"{topic.name} requests carry {topic.request}, not {type(msg).__name__}")
-        body = msg.encode()
-        c = self.credentials
-        return body if c is None else seal(c.key, key_expr, c.service, c.instance, body)
+        return self._seal(key_expr, msg.encode())
 
     def _open(self, topic: Topic, key_expr: str, parts: dict[str, str], payload: bytes,
               request: bool = False) -> tuple[str, bytes]:  # fmt: skip
@@ -320,27 +319,18 @@ class Bus(ABC):
         if self.on_bad_message is not None:
             self.on_bad_message(topic, key_expr, err)
 
-    def decode_delivery(self, topic: Topic, key_expr: str, payload: bytes) -> Delivery | None:
+    def decode_delivery(
+        self, topic: Topic, key_expr: str, payload: bytes, request: bool = False
+    ) -> Delivery | None:
+        """The message in ``payload`` (with ``request``: the request a query carried, whose sender must
+        be one of ``topic.requesters``), checked for size, seal, sender and schema; None (counted,
+        logged) when refused."""
         try:
             self._check_size(topic, payload)
             _, _, parts = parse(key_expr)
-            sender, body = self._open(topic, key_expr, parts, payload)
-            msg = topic.message.decode(body, self.limits)  # type: ignore[union-attr]
-        except (ProtocolError, ValueError) as exc:
-            self._reject(topic, key_expr, exc)
-            return None
-        self.stats.received[topic.name] += 1
-        self.stats.received_bytes[topic.name] += len(payload)
-        return Delivery(key_expr, parts, msg, len(payload), sender)
-
-    def decode_request(self, topic: Topic, key_expr: str, payload: bytes) -> Delivery | None:
-        """The request a query carried, checked like any message (size, seal, requester, schema);
-        None (counted, logged) when refused."""
-        try:
-            self._check_size(topic, payload)
-            _, _, parts = parse(key_expr)
-            sender, body = self._open(topic, key_expr, parts, payload, request=True)
-            msg = topic.request.decode(body, self.limits)  # type: ignore[union-attr]
+            sender, body = self._open(topic, key_expr, parts, payload, request)
+            cls = topic.request if request else topic.message
+            msg = cls.decode(body, self.limits)  # type: ignore[union-attr]
         except (ProtocolError, ValueError) as exc:
             self._reject(topic, key_expr, exc)
             return None

@@ -136,7 +136,9 @@ class InProcBus(Bus):
         with self.hub.lock:
             targets = [(h, b) for k, h, b in self.hub.queryables if k == key_expr]
         for handler, server in targets:
-            decoded = server.decode_request(topic, key_expr, payload)  # checked by the server, as over Zenoh
+            decoded = server.decode_delivery(
+                topic, key_expr, payload, request=True
+            )  # checked by the server, as over Zenoh
             if decoded is None:
                 continue
             with server._answering:  # one request at a time per server, as Zenoh's query thread does

@@ -181,7 +181,9 @@ class ZenohBus(Bus):
         self._pub_lock = threading.Lock()
         self._handles: list = []
         self._queries: queue.Queue = queue.Queue()
-        self._servers: dict[str, QueryHandler] = {}
+        self._servers: dict[
+            str, tuple[QueryHandler | RequestHandler, bool]
+        ] = {}  # key -> (handler, takes a request)
         self._worker: threading.Thread | None = None
         self._closed = False
 
@@ -263,7 +265,7 @@ class ZenohBus(Bus):
                 reply = None
                 if entry is not None and entry[1]:  # the query carries a request message
                     raw = q.payload.to_bytes() if q.payload is not None else b""
-                    request = self.decode_request(topic, key_expr, raw)
+                    request = self.decode_delivery(topic, key_expr, raw, request=True)
                     reply = entry[0](request) if request is not None else None
                 elif entry is not None:
                     reply = entry[0]({k: v for k, v in q.parameters})

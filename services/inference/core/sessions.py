@@ -48,6 +48,22 @@ MAX_POINT_RADIUS = 2.0
 """Gripper-centric points farther than this (m) are not a manipulation scene: refused as out of space."""
 
 
+def refused_reset(session: str, reason: str) -> ResetReply:
+    """The answer to a reset that starts no episode."""
+    return ResetReply(session=session, accepted=False, reason=reason[:256], episode=0, policy_version=-1,
+                      run_id="", observation="")  # fmt: skip
+
+
+def sessionless_hold(req: ActRequest, reason: str, episode: int, t0: float | None = None) -> ActReply:
+    """A hold for a request no session answers (none open for its sender, the server starting or
+    failing): no motion, the jaw commanded as the robot measures it."""
+    hold = np.zeros(ACTION_DIM, np.float32)
+    hold[JAW] = 1.0 if np.isfinite(req.state[4]) and req.state[4] >= 0.5 else -1.0
+    seconds = 0.0 if t0 is None else time.perf_counter() - t0
+    return ActReply(session=req.session, episode=episode, step=req.step, action=hold, policy_version=-1, held=True,
+                    reasons=[reason], compute_seconds=seconds, nonce=req.nonce)  # fmt: skip
+
+
 def episode_seed(session: str, episode: int) -> int:
     """The policy generator's seed for one episode of one session: a stochastic policy (GASv2's latent
     samples, or ``stochastic`` serving) replays exactly given the session's requests."""
@@ -97,7 +113,6 @@ class Session:
     task: str
     envelope: Envelope
     episode: int = 0
-    step: int = 0
     policy: Loaded | None = None
     runtime: PolicyRuntime | None = None
     last_seen: float = field(default_factory=time.monotonic)
@@ -151,8 +166,7 @@ class InferenceCore:
 
     def reset(self, req: ResetRequest, now: float, sender: str = "") -> ResetReply:
         def refuse(reason: str) -> ResetReply:
-            return ResetReply(session=req.session, accepted=False, reason=reason, episode=0,
-                              policy_version=-1, run_id="", observation="")  # fmt: skip
+            return refused_reset(req.session, reason)
 
         self.expire(now)
         cur = self.current
@@ -168,7 +182,7 @@ class InferenceCore:
                 return refuse(f"{self.settings.max_sessions} sessions open (max_sessions)")
             limits = self.limits_for(req.session)
             s = self.sessions[req.session] = Session(req.session, req.task, Envelope(limits), owner=sender)
-        s.task, s.episode, s.step, s.last_seen = req.task, s.episode + 1, 0, now
+        s.task, s.episode, s.last_seen = req.task, s.episode + 1, now
         s.policy, s.runtime = cur, cur.runtime.fresh(seed=episode_seed(s.id, s.episode))
         s.runtime.reset()
         s.envelope.jaw, s.envelope.last_command_at = 1.0, None
@@ -182,10 +196,7 @@ class InferenceCore:
         t0 = time.perf_counter()
         s = self.sessions.get(req.session)
         if s is None or s.owner != sender:
-            jaw = 1.0 if np.isfinite(req.state[4]) and req.state[4] >= 0.5 else -1.0
-            hold = np.zeros(ACTION_DIM, np.float32)
-            hold[JAW] = jaw
-            return self._reply(req, 0, hold, -1, True, ("no_session",), t0)
+            return sessionless_hold(req, "no_session", 0, t0)
         s.last_seen = now
         version = s.policy.version if s.policy is not None else -1
 
@@ -214,7 +225,6 @@ class InferenceCore:
             s.runtime.executed(req.executed)
         action = s.runtime.act(image)
         decision = s.envelope.command(action, pivot, now)
-        s.step = req.step
         return self._reply(req, s.episode, decision.action, version, decision.hold, decision.reasons, t0)
 
     @staticmethod
