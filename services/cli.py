@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import importlib.metadata
 import importlib.util
+import os
 import sys
 from collections.abc import Sequence
+
+DISTRIBUTION = "mea-rl"
+"""The package `mea --version` reports (pyproject.toml's name)."""
 
 # command -> (module with main(argv) -> int | None, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -30,6 +36,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "replay augmented episodes through physics and report their validity",
     ),
     "demos": ("services.actor.demos", "record scripted demonstrations of a task to an MCAP file"),
+    "recording": (
+        "services.recording_check",
+        "`mea recording check PATH...`: messages, channels, time range, whole or damaged",
+    ),
     "bench": ("services.bench.cli", "benchmarks that print tables (or one JSON object with --json)"),
 }
 
@@ -54,20 +64,54 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+def version() -> str:
+    """The installed package's version (its metadata), else "unknown" (a source tree not installed)."""
+    try:
+        return importlib.metadata.version(DISTRIBUTION)
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def os_error(exc: OSError) -> str:
+    """An OS error as one line: what failed, on which path (no traceback)."""
+    what = exc.strerror or str(exc) or type(exc).__name__
+    paths = [str(p) for p in (exc.filename, exc.filename2) if p is not None]
+    return f"{what}: {' -> '.join(paths)}" if paths else what
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Exit codes (docs/cli.md): 0 done, 1 failed while running (an OS error, a service that kept
+    failing), 2 refused (bad input; nothing written)."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if not args or args[0] in ("-h", "--help", "help"):
+    if not args:  # a bare `mea` did nothing it was asked to
+        print(usage(), file=sys.stderr)
+        return 2
+    if args[0] in ("-h", "--help", "help"):
         print(usage())
+        return 0
+    if args[0] in ("-V", "--version"):
+        print(f"mea {version()}")
         return 0
     command = args[0]
     if command not in COMMANDS:
-        print(f"mea: unknown command {command!r}\n\n{usage()}", file=sys.stderr)
+        print(
+            f"mea: unknown command {command!r}; choose from {', '.join(COMMANDS)} (mea --help)",
+            file=sys.stderr,
+        )
         return 2
     if not available(command):
         print(f"mea: `{command}` is not part of this build yet", file=sys.stderr)
         return 2
-    module = importlib.import_module(COMMANDS[command][0])
-    code = module.main(args[1:])
+    try:
+        module = importlib.import_module(COMMANDS[command][0])
+        code = module.main(args[1:])
+    except BrokenPipeError:  # stdout closed early (`mea run --help | head`): nothing left to say
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+    except OSError as exc:
+        print(f"mea {command}: {os_error(exc)}", file=sys.stderr)
+        return 1
     return int(code or 0)
 
 

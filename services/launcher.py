@@ -15,15 +15,17 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import importlib
+import json
 import logging
 import multiprocessing as mp
 import os
+import re
 import signal
 import sys
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,13 +36,14 @@ from proto.topics import EPISODES_RAW
 from services.common import config, logs, run_key
 from services.common.bus.base import Bus, Credentials
 from services.common.bus.inproc import Hub, InProcBus
-from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
+from services.common.bus.zenoh_bus import ZenohBus
 from services.common.mcap_io import SegmentedRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
-from services.plan import ChildSpec, child_specs, restarted
-from services.run_config import PRESETS, RunConfig, recording_metadata, resumed_config
-from services.status_board import StatusBoard
+from services.plan import ChildSpec, check_init_actor, child_specs, restarted
+from services.run_config import PRESETS, RunConfig, read_resume, recording_metadata
+from services.run_zenoh import router_config, secure
+from services.status_board import SUMMARY, StatusBoard, end_of_run, reached_env_steps, read_run_history
 from services.supervision import RestartPolicy, RestartSettings
 
 log = logging.getLogger(__name__)
@@ -282,9 +285,7 @@ def _router(cfg: RunConfig) -> Bus:
     """The launcher's own bus: the embedded Zenoh router, or the hub of the in-process bus."""
     if cfg.in_process:
         return InProcBus(Hub(), namespace=cfg.namespace)
-    return ZenohBus(
-        ZenohConfig(mode="router", listen=(cfg.listen,), connect=cfg.connect, namespace=cfg.namespace)
-    )
+    return ZenohBus(router_config(cfg))  # --listen, --connect, --zenoh-config
 
 
 def _starter(cfg: RunConfig, router: Bus, shutdown: Shutdown) -> Callable[[ChildSpec], Any]:
@@ -318,33 +319,114 @@ def _save_plan(specs: list[ChildSpec], run_dir: Path) -> None:
             config.save(s.config, run_dir / "services" / f"{s.instance}.json")
 
 
-def run(cfg: RunConfig) -> int:
+@dataclasses.dataclass(frozen=True)
+class Prepared:
+    """A run checked and planned, nothing written yet: its settings (a resume's read back), its run
+    directory, the instances to start, config.json's history of resumes, and, for a resume with
+    nothing left to do, why (``finished``)."""
+
+    cfg: RunConfig
+    run_dir: Path
+    specs: list[ChildSpec]
+    missing: list[str]
+    history: tuple[dict, ...] = ()
+    finished: str = ""
+
+
+def _check_run_dir(run_dir: Path, fresh: bool) -> None:
+    """ValueError naming --run-dir unless the run's files can go there: a directory or a path to one
+    (no file on the way), and, for a fresh run, no run there already."""
+    for p in (run_dir, *run_dir.parents):
+        if not p.exists():
+            continue
+        if not p.is_dir():
+            raise ValueError(f"--run-dir {run_dir}: {p} is a file, not a directory")
+        if not os.access(p, os.W_OK | os.X_OK):
+            raise ValueError(f"--run-dir {run_dir}: {p} is not writable")
+        break
+    if fresh and (run_dir / "config.json").exists():
+        raise ValueError(f"--run-dir {run_dir} holds a run already: continue it with --resume {run_dir}, "
+                         "or give another directory")  # fmt: skip
+
+
+def finished(cfg: RunConfig, run_dir: Path) -> str:
+    """Why a resumed run has nothing left to do: its learner reached the budget (``env_steps``) in an
+    earlier sitting and the budget was evaluated (or the run has no evaluator); "" otherwise."""
+    if not cfg.env_steps:
+        return ""
+    reached = reached_env_steps(run_dir)
+    at_budget = [r for r in read_run_history(run_dir) if _int(r.get("env_steps")) >= cfg.env_steps]
+    if reached < cfg.env_steps or not (at_budget or "evaluator" not in cfg.services):
+        return ""
+    evaluated = "" if not at_budget else f", evaluated at {_int(at_budget[-1]['env_steps']):,}"
+    return (f"{run_dir} is finished: {reached:,} env steps of its {cfg.env_steps:,}-step budget{evaluated}. "
+            f"Nothing to do; give a larger --env-steps to train on.")  # fmt: skip
+
+
+def _int(v: object) -> int:
+    return v if isinstance(v, int) and not isinstance(v, bool) else -1
+
+
+def prepare(cfg: RunConfig, given: Collection[str] = ()) -> Prepared:
+    """Everything `mea run` checks before it starts anything, writing nothing: the resumed settings
+    (``given``: the run settings named on the command line), the run directory and every service's
+    config. ValueError, one line naming the option, on bad input."""
+    if cfg.in_process and cfg.extra_services:
+        raise ValueError("--extra-services start their own processes; not with --in-process")
+    history: tuple[dict, ...] = ()
+    if cfg.resume is not None:
+        resumed = read_resume(cfg, given)
+        cfg, history = resumed.config, resumed.history
+    run_dir = cfg.run_dir or Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{cfg.task}-{cfg.variant}"
+    _check_run_dir(run_dir, fresh=cfg.resume is None)
+    cfg = dataclasses.replace(cfg, run_dir=run_dir)
+    try:  # before anything is written: a clone that does not fit the learner stops the run here
+        check_init_actor(cfg)
+    except ValueError as exc:
+        raise ValueError(f"--init-actor: {exc}") from None
+    specs, missing = child_specs(cfg, run_dir)
+    done = finished(cfg, run_dir) if cfg.resume is not None else ""
+    return Prepared(cfg, run_dir, specs, missing, history, done)
+
+
+def _zenoh_reason(exc: Exception) -> str:
+    """Zenoh's error without the Rust source locations it carries (one readable line)."""
+    text = str(exc)
+    os_error = re.search(r"([A-Za-z][^:\[\]]*\(os error \d+\))", text)
+    if os_error:
+        return os_error.group(1).strip()
+    text = re.sub(r"\s+at /\S+?\.rs:\d+\.?", "", text)
+    return " ".join(text.split())[:300]
+
+
+def run(cfg: RunConfig | Prepared, given: Collection[str] = ()) -> int:
+    """Run the stack until the budget, the duration, a failure or a signal stops it."""
+    p = cfg if isinstance(cfg, Prepared) else prepare(cfg, given)
+    cfg, run_dir, specs = p.cfg, p.run_dir, p.specs
     if cfg.in_process:
         logs.setup_in_process(cfg.log_format, "INFO")
-        if cfg.extra_services:
-            print(
-                "mea run: --extra-services start their own processes; not with --in-process", file=sys.stderr
-            )
-            return 2
     else:
         logs.setup("launcher", "launcher", cfg.log_format, "INFO")
     if cfg.resume is not None:
-        cfg = resumed_config(cfg)
-        log.info("resuming", extra={"run_dir": str(cfg.run_dir), "resumes": cfg.resumes})
-    run_dir = cfg.run_dir or Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{cfg.task}-{cfg.variant}"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    cfg = dataclasses.replace(cfg, run_dir=run_dir)
-    config.save(cfg, run_dir / "config.json")
-    shutdown = Shutdown()
-    specs, missing = child_specs(cfg, run_dir)
-    if missing:
-        log.warning("services not in this build are skipped", extra={"missing": ",".join(missing)})
-    _save_plan(specs, run_dir)
-    try:
+        log.info("resuming", extra={"run_dir": str(run_dir), "resumes": cfg.resumes,
+                                    "changed": json.dumps(p.history[-1]["changed"])})  # fmt: skip
+    try:  # before anything is written: a busy --listen port leaves no run directory behind
         router = _router(cfg)
     except Exception as exc:  # noqa: BLE001 - zenoh raises ZError; turn it into a clear message
-        print(f"mea run: cannot start the Zenoh router on {cfg.listen}: {exc}", file=sys.stderr)
-        return 2
+        config.refuse(
+            "mea run", f"--listen {cfg.listen}: cannot start the Zenoh router there: {_zenoh_reason(exc)}"
+        )
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        config.save({**config.to_jsonable(cfg), "history": list(p.history)}, run_dir / "config.json")
+        specs = secure(specs, cfg, run_dir)  # --zenoh-config: the services join with its client config
+        _save_plan(specs, run_dir)
+    except BaseException:
+        router.close()
+        raise
+    if p.missing:
+        log.warning("services not in this build are skipped", extra={"missing": ",".join(p.missing)})
+    shutdown = Shutdown()
     if cfg.authenticate:  # the launcher reads heartbeats, reports and episodes as the run's own
         key = run_key.create(run_dir / run_key.FILE_NAME)
         router.authenticate(Credentials(key, "launcher", "launcher"))
@@ -360,6 +442,7 @@ def run(cfg: RunConfig) -> int:
     procs: dict = {}
     failed = False
     start = _starter(cfg, router, shutdown)
+    summary: dict = {}
     try:
         procs = {s.instance: start(s) for s in specs}
         topology = "in-process" if cfg.in_process else cfg.listen
@@ -373,15 +456,39 @@ def run(cfg: RunConfig) -> int:
         shutdown.set("stopping")
         stop_children(procs, cfg.stop_grace_seconds)
         board.take(settle=0.2)  # the services' last heartbeats
-        board.save_summary(run_dir / "summary.json", recorder.written if recorder else None)
         if recorder is not None:
             recorder.close()
+        summary = board.save_summary(run_dir / SUMMARY, recorder.written if recorder else None, cfg.resumes)
         board.close()
         router.close()
         render_curves(run_dir)
         metrics.close()
+    print(end_of_run(run_dir, summary, shutdown.reason, authenticated=cfg.authenticate), flush=True)
     return 1 if failed else 0
 
 
+def given_fields(argv: Sequence[str]) -> set[str]:
+    """The RunConfig fields named on a command line (``--env-steps 5``, ``--no-record``, ``--x=1``)."""
+    fields = {f.name for f in dataclasses.fields(RunConfig)}
+    out = set()
+    for token in argv:
+        if not token.startswith("--"):
+            continue
+        name = token[2:].partition("=")[0].replace("-", "_")
+        if name not in fields and name.startswith("no_"):
+            name = name[3:]
+        if name in fields:
+            out.add(name)
+    return out
+
+
 def main(argv: Sequence[str]) -> int:
-    return run(config.parse(RunConfig, PRESETS, argv, "mea run", RunConfig.__doc__ or ""))
+    cfg = config.parse(RunConfig, PRESETS, argv, "mea run", RunConfig.__doc__ or "")
+    try:
+        prepared = prepare(cfg, given_fields(argv))
+    except ValueError as exc:
+        config.refuse("mea run", str(exc))
+    if prepared.finished:
+        print(f"mea run: {prepared.finished}")
+        return 0
+    return run(prepared)

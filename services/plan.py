@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,9 +17,10 @@ from services.actor.config import ActorConfig
 from services.augmenter.config import AugmenterConfig
 from services.common import run_key
 from services.common.bus.zenoh_bus import ZenohConfig
-from services.common.config import ServiceConfig
+from services.common.config import ServiceConfig, override
 from services.common.metrics import DEFAULT_PORTS
 from services.evaluator.config import EvaluatorConfig
+from services.learner import init_actor
 from services.learner.config import PRESETS as LEARNER_PRESETS
 from services.run_config import GASV2_PRESETS, SERVICE_MODULES, SERVICE_ORDER, RunConfig
 from services.variants import network_group, variant
@@ -115,8 +117,9 @@ def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any
     """The run's learner preset (``learner_preset``) with the task's group, the variant's
     observation, the run's budget and seed, one torch thread (it shares the cores with actors and
     augmenter; two OpenMP threads on a busy 2-core machine wait on each other), state under
-    RUN_DIR/learner, resumed on --resume."""
-    preset = LEARNER_PRESETS[learner_preset(run)]
+    RUN_DIR/learner, resumed on --resume. ``learner_args`` change the preset before all that, so the
+    run's own settings win."""
+    preset = override(LEARNER_PRESETS[learner_preset(run)], run.learner_args, "--learner-args")
     return dataclasses.replace(
         preset,
         net=dataclasses.replace(preset.net, group=network_group(run.task))
@@ -128,14 +131,29 @@ def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any
         max_env_steps=run.env_steps,
         seed=run.seed,
         run_dir=run_dir / "learner",
+        tensorboard_dir=run_dir / "tb",
         resume=run.resume is not None,
+        init_actor=run.init_actor,
         service=service,
     )
 
 
+def check_init_actor(run: RunConfig) -> None:
+    """ValueError (naming the problem) unless the run's ``init_actor``, if any, is a readable weights
+    file whose actor fits the run's learner (``services.learner.init_actor``): checked before the run
+    writes or starts anything."""
+    if run.init_actor is None or "learner" not in run.services:
+        return
+    _, blob = init_actor.read(run.init_actor)
+    init_actor.check_fits(blob, learner_config(run, Path(run.run_dir or "."), ServiceConfig()))
+
+
 def evaluator_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> EvaluatorConfig:
     """The run's task, cadence and budget; the history under RUN_DIR/eval; the depth image where
-    the variant observes it."""
+    the variant observes it. With a learner (here or on a host the run connects to) the evaluator
+    waits for its replay gate however long it takes, so no evaluation is recorded at env steps -1
+    (the learner announces its first weights a moment before its first gate)."""
+    learner = "learner" in run.services or bool(run.connect)
     return EvaluatorConfig(
         task=run.task,
         run_dir=run_dir,
@@ -144,6 +162,7 @@ def evaluator_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> E
         final_env_steps=run.env_steps,
         final_episodes=run.final_eval_episodes,
         depth_image=variant(run.variant).depth_image,
+        first_gate_wait=math.inf if learner else EvaluatorConfig.first_gate_wait,
         service=service,
     )
 

@@ -5,10 +5,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import typing
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
+import typeguard
+
 from proto.episode import DSA_TASKS
+from services.common.bus.zenoh_derive import check_run_file
+from services.learner.config import PRESETS as LEARNER_PRESETS
+from services.learner.config import check_device
+from services.tasks import TASK_CLASSES
 from services.variants import VARIANTS, check_task
 
 SERVICE_ORDER = ("learner", "augmenter", "evaluator", "actor")
@@ -47,7 +55,8 @@ class RunConfig:
     """Learner preset: cpu-small (two CPU cores), cpu-small-state (the same with a critic on the
     simulator's state), paper (a GPU workstation), smoke (tests)."""
     learner_device: str = "cpu"
-    """torch device of the learner (cuda on a GPU workstation; the GASv2 learner only, for now)."""
+    """torch device of the learner: cpu, cuda or cuda:N (a GPU workstation; every learner). A machine's
+    setting: a resumed run takes it from the command line, so a GPU run continues on a CPU and back."""
     seed: int = 0
     """Run seed: actors' training seeds, augmentation, networks (evaluation seeds are fixed)."""
     eval_every: int = 1000
@@ -71,9 +80,16 @@ class RunConfig:
     follow_gate: bool = True
     """Actors wait for the learner's replay gate (off: actors run flat out; for benchmarks)."""
     resume: Path | None = None
-    """Continue the run in this directory (its saved config; learner checkpoint; no new demos)."""
+    """Continue the run in this directory (its saved config; learner checkpoint; no new demos). Only
+    --env-steps, --eval-every, --actors, --final-eval-episodes and this machine's options may change
+    (docs/cli.md); a finished run trains on to a larger --env-steps."""
     resumes: int = 0
     """How many times the run was resumed (set by --resume; moves the actors' seed streams on)."""
+    init_actor: Path | None = None
+    """Start the learner's actor from these weights (a clone `mea bench imitation --out` wrote, or a
+    weights file / run dir a learner wrote; the newest version in a directory), with the critic's
+    encoder too where the preset shares it: a fresh run only, checked against the learner preset's
+    network before anything starts (docs/imitation.md)."""
     actors: int = 1
     """Number of actor processes."""
     random_steps: int | None = None
@@ -92,6 +108,10 @@ class RunConfig:
     hosts: deploy/multihost.md). With it, actors follow the learned policy even without a learner here."""
     namespace: str = "default"
     """Key namespace of this run (separates runs sharing a Zenoh network)."""
+    zenoh_config: str = ""
+    """Zenoh's own config file (JSON5) for the embedded router: TLS, user/password authentication,
+    access control. Every service of the run joins it with a client config derived from the same file
+    (RUN_DIR/zenoh-client.json5: its connect_* TLS keys and usrpwd user/password; docs/security.md)."""
     authenticate: bool = True
     """Seal every message with the run's key (RUN_DIR/run.key, created at run start, owner-only):
     services accept only what the run's own services sealed, each on the topics it may write
@@ -129,6 +149,11 @@ class RunConfig:
     in_process: bool = False
     """Run every service in this one process over the in-process bus (debugging, fast tests) instead
     of separate processes over the embedded Zenoh router; same services, same configs."""
+
+    learner_args: str = ""
+    """Flags of `mea learner` applied to the learner preset (one quoted string, e.g. `"--sac.bc-filter
+    --demo-fraction 0.25"`): recipe experiments, recorded in config.json. The run's own settings
+    (budget, seed, device, run dir, observation) always come from `mea run`."""
 
     success_rotations: int | None = None
     """Rotated copies of each demonstration and online success (every variant; other episodes get
@@ -176,11 +201,11 @@ class RunConfig:
             raise ValueError(f"mea_on must be one of {MEA_ON[1:]}, not {self.mea_on!r}")
         if self.mea_on and not VARIANTS[self.variant].mea:
             raise ValueError("--mea-on applies to --variant mea and mea-gasv2 only")
+        if self.task not in TASK_CLASSES:
+            raise ValueError(f"--task must be one of {', '.join(TASK_CLASSES)}, not {self.task!r}")
         check_task(self.variant, self.task)
-        if self.learner_device != "cpu" and VARIANTS[self.variant].algorithm != "gasv2":
-            raise ValueError(
-                f"learner_device {self.learner_device!r}: only the gasv2 learner runs off the CPU"
-            )
+        self._check_learner_preset()
+        check_device(self.learner_device, "--learner-device")
         if VARIANTS[self.variant].algorithm == "gasv2" and self.learner_preset not in GASV2_PRESETS:
             raise ValueError(f"learner preset {self.learner_preset!r} has no gasv2 learner; choose one of "
                              f"{sorted(GASV2_PRESETS)}")  # fmt: skip
@@ -193,6 +218,27 @@ class RunConfig:
         unknown = set(self.services) - set(SERVICE_ORDER)
         if unknown:
             raise ValueError(f"unknown services {sorted(unknown)}; choose from {SERVICE_ORDER}")
+        self._check_init_actor()
+        # a file the router or the run's services cannot use: refused before anything starts
+        check_run_file(self.zenoh_config, self.listen, self.connect, self.namespace, self.in_process)
+
+    def _check_learner_preset(self) -> None:
+        """An Equi-RSAC variant's preset must name an Equi-RSAC learner (GASv2 ones: below)."""
+        if VARIANTS[self.variant].algorithm == "gasv2":
+            return
+        choices = [k for k, c in LEARNER_PRESETS.items() if c.algorithm != "gasv2"]
+        if self.learner_preset not in choices:
+            raise ValueError(f"--learner-preset must be one of {', '.join(choices)} with --variant "
+                             f"{self.variant}, not {self.learner_preset!r}")  # fmt: skip
+
+    def _check_init_actor(self) -> None:
+        if self.init_actor is None:
+            return
+        if self.resume is not None:
+            raise ValueError("--init-actor starts a fresh run; a resumed run (--resume) continues from its "
+                             "learner's checkpoint")  # fmt: skip
+        if VARIANTS[self.variant].algorithm == "gasv2":
+            raise ValueError(f"--init-actor applies to the Equi-RSAC variants, not {self.variant!r}")
 
 
 PRESETS = {"default": RunConfig()}
@@ -204,22 +250,101 @@ def recording_metadata(cfg: RunConfig) -> dict[str, str]:
 
 
 _MACHINE_FIELDS = ("listen", "connect", "metrics_port", "metrics_addr", "duration_seconds", "stop_grace_seconds",
-                   "log_format", "final_eval_seconds", "in_process")  # fmt: skip
+                   "log_format", "final_eval_seconds", "in_process", "zenoh_config", "learner_device")  # fmt: skip
 """Fields a resumed run takes from the command line rather than from the run's saved config."""
 
 
-def resumed_config(cfg: RunConfig) -> RunConfig:
-    """``--resume RUN_DIR``: the run's saved config, with this machine's settings, resumes + 1."""
-    path = Path(cfg.resume) / "config.json"
+RESUMABLE = ("env_steps", "eval_every", "actors", "final_eval_episodes")
+"""Run settings a resume may change (each change is recorded in config.json's ``history``): the
+budget, the evaluation cadence, the actor count and the size of the evaluation at the budget. Any
+other run setting given with --resume is refused by name; this machine's (``_MACHINE_FIELDS``) are
+always the command line's."""
+
+
+def flag(field: str) -> str:
+    """The command-line spelling of a RunConfig field."""
+    return "--" + field.replace("_", "-")
+
+
+@dataclass(frozen=True)
+class Resumed:
+    """What ``--resume RUN_DIR`` continues: the saved settings with this sitting's, and config.json's
+    history of resumes with this one last (``{"resume": n, "changed": {field: [old, new]}}``)."""
+
+    config: RunConfig
+    history: tuple[dict, ...]
+
+
+def _saved_value(name: str, value: object, hint: object) -> object:
+    """A config.json value as the field's type (JSON has lists for tuples, strings for paths);
+    ValueError naming the field when it is not of that type."""
+    options = typing.get_args(hint) or (hint,)
+    if isinstance(value, str) and Path in options:
+        value = Path(value)
+    elif isinstance(value, list) and typing.get_origin(hint) is tuple:
+        value = tuple(value)
+    try:
+        typeguard.check_type(value, hint)
+    except typeguard.TypeCheckError as exc:
+        raise ValueError(f"its {name} is {value!r} ({exc})") from None
+    return value
+
+
+def read_resume(cfg: RunConfig, given: Collection[str] = ()) -> Resumed:
+    """``--resume RUN_DIR``: the run's saved config with this machine's settings, the ``RESUMABLE``
+    ones ``given`` on the command line, resumes + 1. ValueError (one line, naming the option) for any
+    other run setting ``given`` (field names), or a run directory whose config.json does not make a
+    run; nothing is written here."""
+    run_dir = Path(cfg.resume)  # type: ignore[arg-type]
+    refused = [flag(f) for f in sorted(given) if f not in (*RESUMABLE, *_MACHINE_FIELDS, "resume")]
+    if refused:
+        raise ValueError(f"{', '.join(refused)} cannot change on --resume (the run keeps the settings in its "
+                         f"config.json); a resume may change {', '.join(map(flag, RESUMABLE))} and this "
+                         f"machine's {', '.join(map(flag, _MACHINE_FIELDS))}")  # fmt: skip
+    path = run_dir / "config.json"
+    if not run_dir.is_dir():
+        raise ValueError(f"--resume {run_dir}: no such run directory")
     try:
         saved = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise SystemExit(f"mea run: cannot resume from {path}: {exc}") from None
-    known = {f.name: f for f in dataclasses.fields(RunConfig)}
-    values = {k: v for k, v in saved.items() if k in known and k not in _MACHINE_FIELDS}
-    for k in ("services", "extra_services"):
-        if k in values:
-            values[k] = tuple(values[k])
-    values.update(run_dir=Path(cfg.resume), resume=Path(cfg.resume), resumes=int(saved.get("resumes", 0)) + 1)
+    except FileNotFoundError:
+        raise ValueError(f"--resume {run_dir}: no config.json there (not a directory of `mea run`)") from None
+    except OSError as exc:
+        raise ValueError(f"--resume {run_dir}: cannot read config.json ({exc.strerror})") from None
+    except ValueError as exc:
+        raise ValueError(f"--resume {run_dir}: config.json is not JSON ({exc})") from None
+    if not isinstance(saved, dict):
+        raise ValueError(
+            f"--resume {run_dir}: config.json holds a {type(saved).__name__}, not a run's settings"
+        )
+    hints = typing.get_type_hints(RunConfig)
+    known = {f.name for f in dataclasses.fields(RunConfig)}
+    try:
+        values = {
+            k: _saved_value(k, v, hints[k])
+            for k, v in saved.items()
+            if k in known and k not in _MACHINE_FIELDS
+        }
+    except ValueError as exc:
+        raise ValueError(f"--resume {run_dir}: config.json is damaged: {exc}") from None
+    values.pop("init_actor", None)  # a fresh run's start: the resumed learner continues its checkpoint
+    resumes = values.get("resumes", 0) + 1
+    changed = {}
+    for k in RESUMABLE:
+        old = values.get(k, getattr(RunConfig, k))
+        if k in given and getattr(cfg, k) != old:
+            changed[k] = [old, getattr(cfg, k)]
+            values[k] = getattr(cfg, k)
+    values.update(run_dir=run_dir, resume=run_dir, resumes=resumes)
     values.update({k: getattr(cfg, k) for k in _MACHINE_FIELDS})
-    return RunConfig(**values)
+    try:
+        resumed = RunConfig(**values)
+    except ValueError as exc:
+        raise ValueError(f"--resume {run_dir}: config.json does not make a run: {exc}") from None
+    history = saved.get("history")
+    history = tuple(h for h in history if isinstance(h, dict)) if isinstance(history, list) else ()
+    return Resumed(resumed, (*history, {"resume": resumes, "changed": changed}))
+
+
+def resumed_config(cfg: RunConfig, given: Collection[str] = ()) -> RunConfig:
+    """``read_resume``'s config."""
+    return read_resume(cfg, given).config

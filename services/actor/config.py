@@ -10,6 +10,7 @@ from services.tasks import EXPERT_STYLES, TASK_CLASSES, EnvSettings
 from services.tasks.camera import CameraSettings
 
 POLICIES = ("expert", "random", "learned")
+EXPERTS = ("observable", "privileged")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,6 +29,11 @@ class ActorConfig:
     prefills 9e3 random steps beside its oracle demos). The episode that crosses it runs to its end."""
     expert_style: str = "alternate"
     """Expert style: alternate, probe (touch the fixed object first) or direct."""
+    expert: str = "observable"
+    """Scripted expert of the general tasks: observable (decides from what it observes: goes to the
+    nearest object and switches if it does not move; each style comes from seeds whose layout gives
+    it) or privileged (the original experts: the style picks the first object by its hidden
+    fixedness, on every seed)."""
     episodes: int = 0
     """Episodes to run after the demonstrations (0: until stopped)."""
     index: int = 0
@@ -65,6 +71,8 @@ class ActorConfig:
             raise ValueError("unacked_limit must be >= 1 and resend_seconds > 0")
         if self.policy not in POLICIES:
             raise ValueError(f"policy must be one of {POLICIES}, not {self.policy!r}")
+        if self.expert not in EXPERTS:
+            raise ValueError(f"expert must be one of {', '.join(EXPERTS)}, not {self.expert!r}")
         if self.expert_style not in ("alternate", *EXPERT_STYLES):
             raise ValueError(f"expert_style must be alternate, probe or direct, not {self.expert_style!r}")
 

@@ -1,7 +1,9 @@
 """`mea demos`: record scripted demonstrations of a task to an MCAP file.
 
 Styles alternate (probe: touch the fixed object first; direct: go to the movable one), and only
-successful episodes are kept, as in Equi-RSAC. ``surgical_grasp_any`` has one style, its discrete
+successful episodes are kept, as in Equi-RSAC. The default expert decides from what it observes, so
+a style is given by the layout: seeds are skipped until the nearest object is the fixed one (probe)
+or the movable one (direct); docs/tasks.md. ``surgical_grasp_any`` has one style, its discrete
 oracle (direct). The file has one channel per message type with its JSON Schema embedded, plus the
 resolved config and the seeds as metadata.
 """
@@ -15,7 +17,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from services.actor.config import ActorConfig
+from services.actor.config import EXPERTS, ActorConfig
 from services.actor.rollout import Actor
 from services.common import config, logs
 from services.common.mcap_io import McapRecorder
@@ -36,6 +38,9 @@ class DemosConfig:
     """Output file (written to OUT.tmp, renamed when complete)."""
     style: str = "alternate"
     """alternate, probe or direct (surgical_grasp_any has only direct: its oracle)."""
+    expert: str = "observable"
+    """observable (decides from what it observes; a style's seeds are those whose layout gives it)
+    or privileged (the original experts, which pick the first object by its hidden fixedness)."""
     seed_base: int = 0
     """First seed."""
     max_attempts: int = 0
@@ -50,12 +55,16 @@ class DemosConfig:
             raise ValueError(f"--task must be one of {', '.join(sorted(TASK_CLASSES))}, not {self.task!r}")
         if self.style not in ("alternate", *EXPERT_STYLES):
             raise ValueError(f"--style must be alternate, probe or direct, not {self.style!r}")
+        if self.expert not in EXPERTS:
+            raise ValueError(f"--expert must be one of {', '.join(EXPERTS)}, not {self.expert!r}")
         if self.n < 1:
             raise ValueError(f"--n must be >= 1 (demonstrations to record), not {self.n}")
         if self.seed_base < 0:
             raise ValueError(f"--seed-base must be >= 0, not {self.seed_base}")
         if self.max_attempts < 0:
             raise ValueError(f"--max-attempts must be >= 0 (0: 4 per demonstration), not {self.max_attempts}")
+        if Path(self.out).parent.exists() and not Path(self.out).parent.is_dir():
+            raise ValueError(f"--out: {str(Path(self.out).parent)!r} is a file, not a directory")
         if not Path(self.out).parent.is_dir():
             raise ValueError(f"--out: the directory {str(Path(self.out).parent)!r} does not exist")
         if Path(self.out).exists() and not self.overwrite:
@@ -80,8 +89,8 @@ def seeds_metadata(seeds: list[int], attempts: int) -> dict[str, str]:
 
 
 def record(cfg: DemosConfig) -> dict:
-    actor_cfg = ActorConfig(task=cfg.task, policy="expert", expert_style=cfg.style, seed_base=cfg.seed_base,
-                            depth_image=cfg.depth_image)  # fmt: skip
+    actor_cfg = ActorConfig(task=cfg.task, policy="expert", expert_style=cfg.style, expert=cfg.expert,
+                            seed_base=cfg.seed_base, depth_image=cfg.depth_image)  # fmt: skip
     actor = Actor(actor_cfg, "demos")
     attempts_cap = cfg.max_attempts or 4 * cfg.n
     kept, attempts, seeds = 0, 0, []

@@ -14,6 +14,7 @@ from services.observation.depth_image import policy_images as depth_policy_image
 from services.observation.projection import segment_policy_images
 from services.tasks import EXPERT_STYLES, ManipulationEnv, make_env
 from services.tasks.env import Observation
+from services.tasks.experts import seed_for_style
 
 
 def policy_image(obs: Observation) -> np.ndarray:
@@ -97,15 +98,28 @@ class Actor:
                               policy_kind=kind, is_demo=is_demo, segments=self.env.segment_names)  # fmt: skip
 
     def expert_episode(self, k: int, on_step=None) -> EpisodeBuilder:
-        style = expert_style(self.cfg.expert_style, k, getattr(self.env.task, "expert_styles", EXPERT_STYLES))
-        seed = self.next_seed()
-        expert_rng = np.random.default_rng([seed, 3])
+        """The k-th expert episode. With the observable expert (``cfg.expert``, for the tasks that
+        have one) the style comes from the layout: the seed stream is skipped forward to the next
+        seed whose layout gives the wanted style (``seed_for_style``), so styles still alternate
+        and every run draws the same seeds. The privileged expert takes the next seed as it is."""
+        task = self.env.task
+        style = expert_style(self.cfg.expert_style, k, getattr(task, "expert_styles", EXPERT_STYLES))
         holder: dict = {}
+        if self.cfg.expert == "observable" and hasattr(task, "observable_expert"):
+            seed = seed_for_style(self.env, style, iter(self.next_seed, None))
 
-        def act(_obs):
-            if "expert" not in holder:  # built after reset, from the privileged state
-                holder["expert"] = self.env.task.expert(self.env, style, expert_rng)
-            return holder["expert"].act()
+            def act(obs):
+                if "expert" not in holder:
+                    holder["expert"] = task.observable_expert(self.env)
+                return holder["expert"].act(obs)
+        else:
+            seed = self.next_seed()
+            expert_rng = np.random.default_rng([seed, 3])
+
+            def act(_obs):
+                if "expert" not in holder:  # built after reset, from the privileged state
+                    holder["expert"] = task.expert(self.env, style, expert_rng)
+                return holder["expert"].act()
 
         return run_episode(self.env, seed, act, self.builder(seed, f"expert_{style}", -1, True), on_step)
 

@@ -6,7 +6,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-import tyro
+from services.common import config
 
 # name -> (module, config class, help); each module has run(cfg) -> dict
 BENCHES: dict[str, tuple[str, str, str]] = {
@@ -29,6 +29,11 @@ BENCHES: dict[str, tuple[str, str, str]] = {
         "services.bench.learning",
         "LearningBenchConfig",
         "train EquiRSAC / EquiObs / MEA variants: success at budget, improvement timestep, AUC, wall time, curves",
+    ),
+    "imitation": (
+        "services.bench.imitation",
+        "ImitationBenchConfig",
+        "behaviour cloning of N scripted demos into the run's actor: held-out success per N and training seed",
     ),
     "system": (
         "services.bench.system",
@@ -66,6 +71,6 @@ def main(argv: Sequence[str]) -> int:
         return 2
     module_name, cls_name, text = BENCHES[name]
     module = importlib.import_module(module_name)
-    cfg = tyro.cli(getattr(module, cls_name), prog=f"mea bench {name}", description=text, args=args[1:])
+    cfg = config.cli(getattr(module, cls_name), args[1:], f"mea bench {name}", text)
     module.run(cfg)
     return 0

@@ -1,14 +1,17 @@
 """`mea bench learner`: gradient updates per second per preset, replay size, weights publish -> loaded.
 
-Three measurements on this machine (CPU, torch's default threads unless ``--threads``):
+Three measurements on this machine (``--device``: the CPU with torch's default threads unless
+``--threads``, or a CUDA GPU):
 
 1. **Updates**: for each preset (default ``paper`` C4 and D4, ``cpu-small`` C4, the non-equivariant
    ``paper`` twin), a replay of random episodes (uint8 policy images, as the augmenter sends them; a
    quarter are 16-step pinned demonstrations, the rest 50-step online episodes) and the preset's real
    update: sample a batch of whole episodes as the preset does (demonstration share, trimming), build
    tensors, critic + actor + alpha steps, soft target update. One warm-up update, then ``--updates`` timed
-   ones; the median is the figure. The ``paper`` C4 row is the one compared with the public code's
-   11.1 s per update (batch 32 x 50 steps, equivariant, 2 threads).
+   ones; the median is the figure, with p50/p99 in ms. On CUDA the batch is copied from pinned memory,
+   the update's statistics stay on the device (as in the learner), and the device is synchronised
+   only before and after each timed update. The ``paper`` C4 row on the CPU is the one compared with
+   the public code's 11.1 s per update (batch 32 x 50 steps, equivariant, 2 threads).
 2. **Replay memory** for 1e5 transitions (reserved bytes, computed for the real layout, and checked
    against an allocated buffer of the same layout at a smaller capacity).
 3. **Weights latency**: a Zenoh router in this process on a free 127.0.0.1 port, the learner's
@@ -46,6 +49,7 @@ from services.bench.harness import (
 from services.bench.reference import PUBLIC_UPDATE_SECONDS_BY_THREADS
 from services.bench.report import emit
 from services.learner.config import PRESETS as LEARNER_PRESETS
+from services.learner.config import check_device, prepare_device
 from services.learner.core.batch import to_batch
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
@@ -68,6 +72,8 @@ class LearnerBenchConfig:
     """Random 50-step episodes in the replay the batches are drawn from."""
     threads: int = 0
     """torch intra-op threads (0: torch's default, 2 on the project's machines)."""
+    device: str = "cpu"
+    """torch device of the timed updates: cpu, cuda or cuda:N (TF32 on CUDA, as the learner)."""
     consumers: int = 2
     """Consumer processes pulling each weights version."""
     versions: int = 20
@@ -83,6 +89,9 @@ class LearnerBenchConfig:
     """Print exactly one JSON object instead of tables."""
 
     def __post_init__(self) -> None:
+        check_device(self.device, "--device")
+        if self.updates < 1:
+            raise ValueError(f"--updates must be >= 1, got {self.updates}")
         for p in self.gasv2_presets:
             if LEARNER_PRESETS.get(p, LEARNER_PRESETS["paper"]).algorithm != "gasv2":
                 gasv2 = sorted(k for k, v in LEARNER_PRESETS.items() if v.algorithm == "gasv2")
@@ -143,34 +152,49 @@ def bench_replay_contents(cfg: LearnerBenchConfig, rng: np.random.Generator) -> 
     return replay
 
 
+def _synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work (CUDA); nothing to wait for on the CPU."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _timing_columns(update_s: list[float]) -> dict[str, float]:
+    return {"ms/update p50": 1e3 * percentile(update_s, 50), "ms/update p99": 1e3 * percentile(update_s, 99)}
+
+
 def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
     rng = np.random.default_rng(cfg.seed)
     replay = bench_replay_contents(cfg, rng)
+    device = prepare_device(cfg.device)
     rows = []
     for variant in cfg.variants:
         preset, net, batch_size = variant_net(variant)
         lc = LEARNER_PRESETS[preset]
         torch.manual_seed(cfg.seed)
-        sac = RecurrentSAC(build_actor(net), build_critic(net), lc.sac)
+        sac = RecurrentSAC(build_actor(net), build_critic(net), lc.sac, device)
+        # the learner's own call: floats per update on the CPU, statistics left on a GPU
+        update = sac.update if device.type == "cpu" else sac.update_tensors
         sample_s, update_s = [], []
         for i in range(cfg.updates + 1):
+            _synchronize(device)
             t0 = time.perf_counter()
             sample = replay.sample(batch_size, rng, demo_fraction=lc.demo_fraction, trim=lc.trim_batches)
-            batch = to_batch(sample)
+            batch = to_batch(sample, device)
             t1 = time.perf_counter()
-            sac.update(batch)
+            update(batch)
+            _synchronize(device)
             t2 = time.perf_counter()
             if i:  # the first update warms up allocators and kernels
                 sample_s.append(t1 - t0)
                 update_s.append(t2 - t0)
         per_update = statistics.median(update_s)
-        _log(f"{variant}: {per_update:.3f} s/update")
+        _log(f"{variant} on {device}: {per_update:.3f} s/update")
         rows.append({
-            "variant": variant, "group": net.group, "batch (episodes)": batch_size,
+            "variant": variant, "device": str(device), "group": net.group, "batch (episodes)": batch_size,
             "critic": net.critic_input, "demo share": lc.demo_fraction, "trimmed": lc.trim_batches, "shared encoder": lc.sac.share_encoder,
             "params (actor + critic)": sum(p.numel() for m in (sac.actor, sac.critic) for p in m.parameters()),
-            "s/update (median)": per_update, "s/update (min)": min(update_s), "updates/s": 1.0 / per_update,
-            "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),
+            "s/update (median)": per_update, "s/update (min)": min(update_s), **_timing_columns(update_s),
+            "updates/s": 1.0 / per_update, "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),
         })  # fmt: skip
     return rows
 
@@ -221,17 +245,20 @@ def bench_gasv2_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
     for k in range(cfg.gasv2_episodes):
         replay.insert_episode(random_dsa_episode(rng, k, is_demo=k < cfg.gasv2_episodes // 4))
     rows = []
+    device = prepare_device(cfg.device)
     for preset in cfg.gasv2_presets:
         lc = LEARNER_PRESETS[preset]
         torch.manual_seed(cfg.seed)
-        agent = GasV2Agent(lc.dreamer, seed=cfg.seed)
+        agent = GasV2Agent(lc.dreamer, seed=cfg.seed, device=device)
         sample_s, update_s = [], []
         for i in range(cfg.updates + 1):
+            _synchronize(device)
             t0 = time.perf_counter()
             sample = replay.sample_chunks(lc.batch_size, lc.chunk_length, rng, demo_fraction=lc.demo_fraction)
-            batch = to_chunk_batch(sample)
+            batch = to_chunk_batch(sample, device)
             t1 = time.perf_counter()
             agent.update(batch)
+            _synchronize(device)
             t2 = time.perf_counter()
             if i:
                 sample_s.append(t1 - t0)
@@ -243,8 +270,9 @@ def bench_gasv2_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
             "preset": preset, "batch (windows x length)": f"{lc.batch_size} x {lc.chunk_length}",
             "deter / hidden": f"{d.deter} / {d.hidden}", "latent": f"{d.stoch} x {d.classes}", "cnn depth": d.cnn_depth,
             "params (all)": sum(p.numel() for m in (agent.world_model, agent.actor, agent.critic) for p in m.parameters()),
-            "params (published)": sum(v.numel() for v in agent.policy.state_dict().values()),
-            "s/update (median)": per_update, "s/update (min)": min(update_s), "updates/s": 1.0 / per_update,
+            "params (published)": sum(v.numel() for v in agent.policy.state_dict().values()), "device": str(device),
+            "s/update (median)": per_update, "s/update (min)": min(update_s), **_timing_columns(update_s),
+            "updates/s": 1.0 / per_update,
             "env steps/s it keeps up with": lc.samples_per_insert and 1.0 / (per_update * lc.samples_per_insert),
             "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),
         })  # fmt: skip
@@ -385,17 +413,18 @@ def run(cfg: LearnerBenchConfig) -> dict:
         sections["gasv2 replay memory"] = bench_gasv2_replay(cfg)
     sections["weights publish -> loaded by consumers"] = bench_weights(cfg) if cfg.consumers > 0 else []
     paper = next((r for r in sections["gradient updates"] if r["variant"] in ("paper:c4", "paper")), None)
-    threads = torch.get_num_threads()
-    sections["paper preset against the public code at the same thread count"] = same_threads_rows(
-        paper, threads
+    threads, cpu = torch.get_num_threads(), cfg.device == "cpu"
+    sections["paper preset against the public code at the same thread count"] = (
+        same_threads_rows(paper, threads) if cpu else []
     )
-    measured = {  # the generic target row is the 2-thread figure
-        "update_seconds": paper["s/update (median)"] if paper and threads == 2 else None,
+    measured = {  # the generic target row is the 2-thread CPU figure
+        "update_seconds": paper["s/update (median)"] if paper and threads == 2 and cpu else None,
         "replay_bytes_per_1e5": float(sections["replay memory"][0]["ours bytes"]),
     }
     meta = {
         "torch": torch.__version__, "threads": torch.get_num_threads(), "python": platform.python_version(),
         "cpu": platform.processor() or platform.machine(), "seconds": round(time.monotonic() - started, 1),
+        "device": cfg.device, "gpu": torch.cuda.get_device_name(cfg.device) if cfg.device != "cpu" else "",
         "batches": "random uint8 policy images (84x84, 2 channels), 50-step episodes, whole-episode batches",
     }  # fmt: skip
     return emit("learner", sections, measured=measured, as_json=cfg.json, meta=meta)

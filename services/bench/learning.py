@@ -1,36 +1,44 @@
 """`mea bench learning`: the paper's comparison, trained here: success at the budget, improvement
 timestep and area under the success curve of EquiRSAC, EquiObs-EquiRSAC and MEA-EquiObs-EquiRSAC
-(optionally MEA on every episode).
+(optionally MEA on every episode), with statistics over seeds a reader can trust.
 
 Each (variant, seed) is one whole `mea run` (its own processes and Zenoh router on a free 127.0.0.1
 port, its own run directory ``OUT/<task>-<variant>-s<seed>``), one after another, so every run gets
-the machine to itself. A run gets exactly `make run`'s recipe (``mea run --task T --demos 2`` and
-`mea run`'s defaults) plus the variant, seed, env-step budget and evaluation settings of the preset;
-only the ``paper`` preset changes the learner (``--learner-preset paper``).
+the machine to itself. Every arm runs the same seeds 0..n-1 (paired by seed). A run gets exactly
+`make run`'s recipe (``mea run --task T --demos 2`` and `mea run`'s defaults) plus the variant, seed,
+env-step budget and evaluation settings of the preset; only the ``paper`` preset changes the learner
+(``--learner-preset paper``). ``--protocol`` names a calibration against public numbers instead
+(``PROTOCOLS``: its data, arms, budget and seeds; its runs under ``OUT/<protocol>``).
 
-Per variant, from the runs' evaluation histories (``RUN_DIR/eval/history.jsonl``):
+Per variant, from the runs' evaluation histories (``RUN_DIR/eval/history.jsonl``), with 95%
+stratified-bootstrap intervals over seeds from rliable (``services.bench.stats``):
 
-* success at budget: the success rate of each run's evaluation at the budget (the first with
-  ``env_steps >= budget``: ``--final-eval-episodes`` held-out seeds), mean ± std over seeds;
+* success at budget: each run's evaluation at the budget (the first with ``env_steps >= budget``:
+  ``--final-eval-episodes`` held-out seeds); mean, IQM and std over seeds;
 * improvement timestep (the paper's: the first env-step count from which success stays > 0), mean
   over the seeds that have one, and of the mean-over-seeds curve;
 * AUC: the area under each run's success curve, normalised by its evaluated env-step range
-  (trapezoid rule on env steps, in [0, 1]: ``services.evaluator.core.metrics.success_auc``), mean ±
-  std over seeds;
+  (``services.evaluator.core.metrics.success_auc``, in [0, 1]), mean over seeds;
+* against the first arm: rliable's probability of improvement, and "within noise" where the two
+  arms' intervals of the mean success at the budget overlap;
+* with a protocol: ours (mean and interval) beside the public reference at its env-step points;
 * wall time: the minutes the runs took (every `mea run` session of a run, resumed ones included,
   is added up in ``RUN_DIR/bench-wall.json``), and the whole stack's training env steps per second
   against the public Equi-RSAC training loop (one 11.1 s update per env step plus its env: about
   0.065-0.09 env steps/s on a 2-core CPU);
-* the learning curves (``mea plot``) as ``OUT/curves-<task>.png``, and the result as
-  ``OUT/result-<task>.json``.
+* ``curves-<task>.png`` (mean success vs env steps with its interval band per arm, and the
+  protocol's reference), ``profile-<task>.png`` (rliable performance profile of success at the
+  budget) and ``result-<task>.json``, all in the output directory.
 
 Resumable: a run whose history has an evaluation at the budget is reused (delete it to rerun); a run
 directory without one is continued with ``mea run --resume``. A run directory made with other
-settings (task, variant, seed, budget) is refused rather than mixed in.
+settings (task, variant, seed, budget, demos, random steps, learner preset) is refused rather than
+mixed in.
 
-Presets: ``cpu-small`` (20K env steps, 1 seed, the cpu-small learner `mea run` defaults to; evaluation
-every 1,000 env steps on 20 held-out seeds, 50 at the budget) and ``paper`` (40K env steps, 4 seeds,
-the paper learner preset, evaluation every 250 env steps; meant for a GPU workstation).
+Presets: ``cpu-small`` (20K env steps, 3 seeds, the cpu-small learner `mea run` defaults to;
+evaluation every 1,000 env steps on 20 held-out seeds, 50 at the budget) and ``paper`` (40K env
+steps, 4 seeds, the paper learner preset, evaluation every 250 env steps; meant for a GPU
+workstation).
 """
 
 from __future__ import annotations
@@ -46,6 +54,7 @@ from typing import Any
 
 import numpy as np
 
+from services.bench import stats
 from services.bench.harness import free_port
 from services.bench.reference import PUBLIC_UPDATE_SECONDS
 from services.bench.report import emit
@@ -61,15 +70,15 @@ VARIANTS = {
 TASK_VARIANTS = {"surgical_grasp_any": ("gasv2", "mea-gasv2")}
 """The comparison run on a task where it is not the general manipulation one (``VARIANTS``' first three)."""
 SURGICAL_PRESETS: dict[str, dict[str, Any]] = {
-    "cpu-small": {"env_steps": 16_000, "seeds": 1, "eval_every": 2_000, "eval_episodes": 20,
+    "cpu-small": {"env_steps": 16_000, "seeds": 3, "eval_every": 2_000, "eval_episodes": 20,
                   "final_eval_episodes": 20, "demos": 10},
     "paper": {"env_steps": 420_000, "seeds": 3, "eval_every": 10_000, "eval_episodes": 20,
               "final_eval_episodes": 20, "demos": 10},
 }  # fmt: skip
 """Surgical Grasp Any's settings per preset (the learner preset as ``PRESETS``). paper: the paper's
-Sec. VI (10 demos, 420K env steps, 20 evaluation rollouts every 10K, 3 seeds). cpu-small: what two
-runs fit in under two hours on two CPU cores (16K env steps took 40 minutes per run here, with
-seven evaluations of 20 episodes that mostly run to the 80-step limit; README, "Benchmarks")."""
+Sec. VI (10 demos, 420K env steps, 20 evaluation rollouts every 10K, 3 seeds). cpu-small: 16K env
+steps took 40 minutes per run here, with seven evaluations of 20 episodes that mostly run to the
+80-step limit (README, "Benchmarks"); 3 seeds per arm, the fewest that give an interval."""
 
 PUBLIC_TRAINING_ENV_STEPS_PER_SECOND = (0.065, 1.0 / PUBLIC_UPDATE_SECONDS)
 """The public Equi-RSAC training loop on a 2-core CPU, env steps/s: one 11.1 s update per env step
@@ -78,21 +87,66 @@ is 0.09; with its env steps and evaluations about 0.065. Ratios are taken agains
 WALL_FILE = "bench-wall.json"
 """Inside a run directory: the wall seconds of every `mea run` session this benchmark ran there."""
 
+PROFILE_TAUS = np.linspace(0.0, 1.0, 51)
+"""Thresholds of the performance profile (success at budget; 50 held-out episodes move it by 0.02)."""
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """A calibration against published numbers: their data, arms, budget and seeds, and their curve."""
+
+    variants: tuple[str, ...]
+    env_steps: int
+    seeds: int
+    demos: int
+    random_steps: int | None
+    """``mea run --random-steps`` (None: not passed, the learner preset's prefill)."""
+    eval_every: int
+    reference_name: str
+    reference: dict[str, dict[int, float]]
+    """Per arm: env steps -> the reference's mean success there."""
+    learner: str = "cpu-small"
+    task: str = "block_pull"
+
+
+_PUBLIC15_STEPS = (5_000, 10_000, 15_000, 20_000, 25_000)
+PROTOCOLS: dict[str, Protocol] = {
+    # the public Equi-RSAC protocol's data: 80 expert demos and 20 random episodes (50 steps each)
+    "public80": Protocol(
+        variants=("equirsac", "equiobs"), env_steps=40_000, seeds=2, demos=80, random_steps=1_000,
+        eval_every=1_000, reference_name="public Equi-RSAC (best Block Pull policies, 50 episodes)",
+        reference={"equirsac": {40_000: 1.0}, "equiobs": {40_000: 1.0}},
+    ),
+    # the public reproduction linhongbin-ws/rgbd-sym: 15 demos, mean success of its baseline and MEA arm
+    "public15": Protocol(
+        variants=("equiobs", "mea"), env_steps=25_000, seeds=3, demos=15, random_steps=None,
+        eval_every=1_000, reference_name="public reproduction (linhongbin-ws/rgbd-sym)",
+        reference={"equiobs": dict(zip(_PUBLIC15_STEPS, (0.00, 0.27, 0.37, 0.53, 0.77), strict=True)),
+                   "mea": dict(zip(_PUBLIC15_STEPS, (0.00, 0.33, 0.17, 0.53, 0.67), strict=True))},
+    ),
+}  # fmt: skip
+"""``--protocol``: named calibrations on Block Pull with the cpu-small learner (20 held-out episodes
+per evaluation, 50 at the budget)."""
+
 
 @dataclass(frozen=True)
 class LearningBenchConfig:
     """Train the paper's variants and print success at budget, improvement timestep, AUC and wall time."""
 
     preset: str = "cpu-small"
-    """cpu-small (20K steps, 1 seed, `mea run`'s learner; 2 CPU cores) or paper (40K steps, 4 seeds,
+    """cpu-small (20K steps, 3 seeds, `mea run`'s learner; 2 CPU cores) or paper (40K steps, 4 seeds,
     paper learner; GPU)."""
     task: str = "block_pull"
     """Task: block_pull, block_pick, drawer_open or surgical_grasp_any."""
     variants: tuple[str, ...] = ()
     """Variants to train; empty: the paper's comparison for the task (equirsac, equiobs, mea; on
     surgical_grasp_any gasv2, mea-gasv2). Add mea-all for MEA on every episode, beyond the paper."""
+    protocol: str = ""
+    """A calibration against public numbers instead of the preset (public80: 80 demos + 1,000 random
+    steps, equirsac and equiobs, 40K env steps, 2 seeds; public15: 15 demos, equiobs and mea, 25K env
+    steps, 3 seeds); its runs and results go to OUT/<protocol>. Other options still override it."""
     seeds: int = 0
-    """Seeds per variant (0: the preset's)."""
+    """Seeds per variant, the same seeds 0..n-1 for every variant (0: the preset's)."""
     env_steps: int = 0
     """Env-step budget per run (0: the preset's)."""
     demos: int = 0
@@ -112,11 +166,15 @@ class LearningBenchConfig:
     json: bool = False
     """Print exactly one JSON object instead of tables."""
     extra: tuple[str, ...] = field(default_factory=tuple)
-    """Extra `mea run` arguments for every new run."""
+    """Extra `mea run` arguments for every new run (e.g. --extra=--learner-device=cuda)."""
+    bootstrap_reps: int = 10_000
+    """Stratified-bootstrap resamples per interval."""
+    bootstrap_seed: int = 0
+    """Seed of the bootstrap (the same seed and runs give the same intervals)."""
 
 
 PRESETS: dict[str, dict[str, Any]] = {
-    "cpu-small": {"env_steps": 20_000, "seeds": 1, "learner": None, "eval_every": 1_000, "eval_episodes": 20,
+    "cpu-small": {"env_steps": 20_000, "seeds": 3, "learner": None, "eval_every": 1_000, "eval_episodes": 20,
                   "final_eval_episodes": 50},
     "paper": {"env_steps": 40_000, "seeds": 4, "learner": "paper", "eval_every": 250, "eval_episodes": 20,
               "final_eval_episodes": 50},
@@ -136,17 +194,47 @@ class Settings:
     eval_every: int
     eval_episodes: int
     final_eval_episodes: int
+    random_steps: int | None = None
+    protocol: Protocol | None = None
+
+    @property
+    def seed_list(self) -> tuple[int, ...]:
+        """Every arm runs these seeds: arms are paired by seed."""
+        return tuple(range(self.seeds))
+
+
+def _refuse(msg: str) -> SystemExit:
+    return SystemExit(f"mea bench learning: {msg}")
+
+
+def _check_options(cfg: LearningBenchConfig) -> None:
+    if cfg.preset not in PRESETS:
+        raise _refuse(f"unknown preset {cfg.preset!r} (choose from {sorted(PRESETS)})")
+    if cfg.protocol and cfg.protocol not in PROTOCOLS:
+        raise _refuse(f"unknown --protocol {cfg.protocol!r} (choose from {sorted(PROTOCOLS)})")
+    negative = [n for n in ("seeds", "env_steps", "demos", "eval_every", "eval_episodes", "final_eval_episodes")
+                if getattr(cfg, n) < 0]  # fmt: skip
+    if negative:
+        raise _refuse(f"--{negative[0].replace('_', '-')} must be >= 0 (0: the preset's)")
+    if cfg.bootstrap_reps < 1:
+        raise _refuse(f"--bootstrap-reps must be >= 1, not {cfg.bootstrap_reps}")
+    unknown = set(cfg.variants) - set(VARIANTS)
+    if unknown:
+        raise _refuse(f"unknown variants {sorted(unknown)} (choose from {sorted(VARIANTS)})")
+    if cfg.protocol:
+        proto = PROTOCOLS[cfg.protocol]
+        if cfg.task != proto.task:
+            raise _refuse(f"--protocol {cfg.protocol} is a {proto.task} protocol, not --task {cfg.task}")
+        if cfg.preset != "cpu-small":
+            raise _refuse(f"--protocol {cfg.protocol} sets its own learner ({proto.learner}); "
+                          "leave --preset at cpu-small")  # fmt: skip
 
 
 def settings(cfg: LearningBenchConfig) -> Settings:
-    if cfg.preset not in PRESETS:
-        raise SystemExit(f"mea bench learning: unknown preset {cfg.preset!r} (choose from {sorted(PRESETS)})")
-    unknown = set(cfg.variants) - set(VARIANTS)
-    if unknown:
-        raise SystemExit(
-            f"mea bench learning: unknown variants {sorted(unknown)} (choose from {sorted(VARIANTS)})"
-        )
-    variants = cfg.variants or TASK_VARIANTS.get(cfg.task, ("equirsac", "equiobs", "mea"))
+    _check_options(cfg)
+    proto = PROTOCOLS.get(cfg.protocol)
+    default_variants = proto.variants if proto else ("equirsac", "equiobs", "mea")
+    variants = cfg.variants or TASK_VARIANTS.get(cfg.task, default_variants)
     from services.variants import check_task
 
     for v in variants:
@@ -157,6 +245,9 @@ def settings(cfg: LearningBenchConfig) -> Settings:
     p = dict(PRESETS[cfg.preset])
     if cfg.task in TASK_VARIANTS:
         p.update(SURGICAL_PRESETS[cfg.preset])
+    if proto is not None:
+        p.update(env_steps=proto.env_steps, seeds=proto.seeds, demos=proto.demos, learner=proto.learner,
+                 eval_every=proto.eval_every, random_steps=proto.random_steps)  # fmt: skip
     return Settings(
         budget=cfg.env_steps or p["env_steps"],
         seeds=cfg.seeds or p["seeds"],
@@ -166,6 +257,8 @@ def settings(cfg: LearningBenchConfig) -> Settings:
         eval_every=cfg.eval_every or p["eval_every"],
         eval_episodes=cfg.eval_episodes or p["eval_episodes"],
         final_eval_episodes=cfg.final_eval_episodes or p["final_eval_episodes"],
+        random_steps=p.get("random_steps"),
+        protocol=proto,
     )
 
 
@@ -173,8 +266,13 @@ def _log(msg: str) -> None:
     print(f"[bench learning] {msg}", file=sys.stderr, flush=True)
 
 
+def out_dir(cfg: LearningBenchConfig) -> Path:
+    """Where runs and results go: --out, or --out/<protocol> for a protocol."""
+    return cfg.out / cfg.protocol if cfg.protocol else cfg.out
+
+
 def run_dir_of(cfg: LearningBenchConfig, variant: str, seed: int) -> Path:
-    return cfg.out / f"{cfg.task}-{variant}-s{seed}"
+    return out_dir(cfg) / f"{cfg.task}-{variant}-s{seed}"
 
 
 def _history(run_dir: Path) -> list[dict]:
@@ -185,7 +283,8 @@ def _history(run_dir: Path) -> list[dict]:
 
 
 def budget_record(records: list[dict], budget: int) -> dict | None:
-    """The run's evaluation at the budget: the first (in file order) with env_steps >= budget."""
+    """The run's evaluation at the budget (or any env-step point): the first (in file order) with
+    env_steps >= budget."""
     return next((r for r in records if isinstance(r.get("env_steps"), (int, float)) and r["env_steps"] >= budget),
                 None)  # fmt: skip
 
@@ -200,9 +299,31 @@ def run_args(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> 
     args = ["--task", cfg.task, "--demos", str(s.demos), *VARIANTS[variant], "--seed", str(seed),
             "--actors", str(cfg.actors), "--env-steps", str(s.budget), "--eval-every", str(s.eval_every),
             "--eval-episodes", str(s.eval_episodes), "--final-eval-episodes", str(s.final_eval_episodes)]  # fmt: skip
+    if s.random_steps is not None:
+        args += ["--random-steps", str(s.random_steps)]
     if s.learner is not None:
         args += ["--learner-preset", s.learner]
     return [*args, "--run-dir", str(run_dir_of(cfg, variant, seed)), *cfg.extra]
+
+
+CHECKED = ("task", "variant", "seed", "env_steps", "demos", "random_steps", "learner_preset")
+"""What a reused or resumed run directory must have been made with (demos and random steps as
+resolved: None stands for the default it resolved to)."""
+
+
+def _checked(values: dict[str, Any]) -> dict[str, Any]:
+    """The ``CHECKED`` settings of a `mea run` config (as saved in config.json), defaults resolved."""
+    from services.launcher import RunConfig
+
+    known = {
+        k: values[k] for k in ("task", "variant", "learner_preset", "demos", "random_steps") if k in values
+    }
+    try:
+        rc = RunConfig(**known)
+    except (TypeError, ValueError):  # not a config this code can read: compare what was saved
+        return {k: values[k] for k in CHECKED if k in values}
+    resolved = {"demos": rc.resolved_demos(), "random_steps": rc.resolved_random_steps()}
+    return {k: resolved.get(k, values[k]) for k in CHECKED if k in values}
 
 
 def check_existing(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> None:
@@ -215,8 +336,17 @@ def check_existing(cfg: LearningBenchConfig, variant: str, seed: int, s: Setting
         saved = json.loads(path.read_text())
     except (OSError, ValueError):
         return
-    want = {"task": cfg.task, "variant": VARIANTS[variant][1], "seed": seed, "env_steps": s.budget}
-    made = {k: saved[k] for k, v in want.items() if k in saved and saved[k] != v}
+    if not isinstance(saved, dict):
+        return
+    from services.common import config
+    from services.launcher import PRESETS as RUN_PRESETS
+    from services.launcher import RunConfig
+
+    # what `mea run` would save for this run now, --extra included
+    wanted_cfg = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, variant, seed, s), "mea run", "")
+    want = _checked(config.to_jsonable(wanted_cfg))
+    have = _checked(saved)
+    made = {k: have[k] for k, v in want.items() if k in have and have[k] != v}
     if made:
         wanted = {k: want[k] for k in made}
         raise SystemExit(
@@ -279,6 +409,10 @@ def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
     return float(a.mean()), float(a.std())
 
 
+def _ci(i: stats.Interval | None) -> list[float] | None:
+    return None if i is None else [i.lo, i.hi]
+
+
 def run_row(variant: str, run_dir: Path, budget: int) -> dict[str, Any]:
     """One run's numbers from its history and wall-time file."""
     from services.evaluator.core.metrics import curve, improvement_timestep, success_auc
@@ -299,16 +433,122 @@ def run_row(variant: str, run_dir: Path, budget: int) -> dict[str, Any]:
     }  # fmt: skip
 
 
-def summarize(
-    task: str, runs: dict[str, list[Path]], budget: int, png: Path | None, learner: str
-) -> dict[str, list[dict[str, Any]]]:
-    """The benchmark's sections from finished (or partly finished) run directories, and the curves PNG.
+def arm_band(dirs: list[Path], boot: stats.Bootstrap) -> stats.CurveBand | None:
+    """An arm's runs on their union env-step grid (step-wise hold), reduced to mean and interval."""
+    from services.evaluator.core.metrics import align, common_grid, curve
 
-    ``comparison``: one row per variant; ``runs``: one per run; and the training loop (whole-stack env
-    steps/s) against the public Equi-RSAC code."""
+    curves = [c for c in (curve(_history(d)) for d in dirs) if c[0].size]
+    if not curves:
+        return None
+    grid = common_grid(curves)
+    return stats.curve_band(grid, align(curves, grid, "hold"), boot)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def render_curves(bands: dict[str, stats.CurveBand], reference: dict[str, dict[int, float]], ref_name: str,
+                  png: Path, title: str) -> None:  # fmt: skip
+    """Mean success vs env steps per arm with its interval band, and the reference's points."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+    try:
+        for arm, band in bands.items():
+            (line,) = ax.plot(band.steps, band.mean, drawstyle="steps-post",
+                              marker="o" if band.steps.size == 1 else "", label=f"{arm} (n={band.runs})")  # fmt: skip
+            ax.fill_between(band.steps, band.lo, band.hi, color=line.get_color(), alpha=0.2, linewidth=0,
+                            step="post")  # fmt: skip
+            ref = reference.get(arm)
+            if ref:
+                ax.plot(list(ref), list(ref.values()), linestyle="--", marker="x", color=line.get_color(),
+                        label=f"{arm}: {ref_name}")  # fmt: skip
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("success rate")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", fontsize="small")
+        ax.set_title(title, fontsize="medium")
+        fig.tight_layout()
+        fig.savefig(png, format="png")
+    finally:
+        plt.close(fig)
+
+
+def render_profile(profiles: dict[str, stats.Profile], png: Path, title: str) -> None:
+    """rliable's performance-profile plot: fraction of runs with success at the budget > tau."""
+    plt = _pyplot()
+    from rliable import plot_utils
+
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+    try:
+        taus = next(iter(profiles.values())).taus
+        plot_utils.plot_performance_profiles(
+            {k: p.fraction for k, p in profiles.items()}, taus,
+            performance_profile_cis={k: (p.lo, p.hi) for k, p in profiles.items()}, ax=ax,
+            xlabel=r"success at budget ($\tau$)", ylabel=r"fraction of runs with success $> \tau$",
+            labelsize="medium", ticklabelsize="medium",
+        )  # fmt: skip
+        ax.legend(loc="upper right")
+        ax.set_title(title, fontsize="medium")
+        fig.tight_layout()
+        fig.savefig(png, format="png")
+    finally:
+        plt.close(fig)
+
+
+def reference_rows(
+    proto: Protocol, runs: dict[str, list[Path]], boot: stats.Bootstrap
+) -> list[dict[str, Any]]:
+    """Ours (mean and interval over seeds of each run's first evaluation at or after the reference's
+    env steps) beside the reference, point by point."""
+    rows = []
+    for arm, points in proto.reference.items():
+        if arm not in runs:
+            continue
+        histories = [_history(d) for d in runs[arm]]
+        for steps, ref in points.items():
+            at = [budget_record(h, steps) for h in histories]
+            values = [float(r["success_rate"]) for r in at if r is not None]
+            iv = stats.mean_interval(values, boot)
+            if iv is None:
+                verdict = "not reached"
+            elif iv.point >= ref:
+                verdict = "at/above"
+            else:
+                verdict = "below (reference inside the CI)" if iv.hi >= ref else "below"
+            rows.append({
+                "variant": arm, "env steps": steps, "seeds": len(values),
+                "ours (mean)": None if iv is None else iv.point, "ours (95% CI)": _ci(iv),
+                "reference": ref, "verdict": verdict,
+            })  # fmt: skip
+    return rows
+
+
+def summarize(
+    task: str,
+    runs: dict[str, list[Path]],
+    budget: int,
+    out: Path | None,
+    learner: str,
+    boot: stats.Bootstrap,
+    protocol: Protocol | None = None,
+) -> dict[str, list[dict[str, Any]]]:
+    """The benchmark's sections from finished (or partly finished) run directories, and its PNGs in
+    ``out`` (None: none).
+
+    ``comparison``: success at the budget per variant; ``learning speed``: AUC, improvement timestep
+    and wall time; ``against the first arm``: probability of improvement and the noise verdict;
+    ``against the public reference`` with a protocol; ``runs``: one row per run; and the training
+    loop (whole-stack env steps/s) against the public Equi-RSAC code."""
     import dataclasses
 
-    from services.evaluator.plot import PlotError, group_runs, load_run, render, summary_row
+    from services.evaluator.plot import PlotError, group_runs, load_run, summary_row
 
     loaded = []
     for variant, dirs in runs.items():
@@ -318,28 +558,34 @@ def summarize(
             except PlotError as exc:
                 _log(f"{d.name}: {exc}")
     groups = {g.label: g for g in group_runs(loaded)}
-    if groups and png is not None:
-        render(list(groups.values()), png, title=f"{task}: success rate vs env steps (mean ± std over seeds)")
     per_run = {v: [run_row(v, d, budget) for d in dirs] for v, dirs in runs.items()}
-    comparison, loop = [], []
+    at_budget = {v: [r["success at budget"] for r in rows if r["success at budget"] is not None]
+                 for v, rows in per_run.items()}  # fmt: skip
+    comparison, speed, loop = [], [], []
     lo, hi = PUBLIC_TRAINING_ENV_STEPS_PER_SECOND
     for variant, rows in per_run.items():
-        at_budget = [r["success at budget"] for r in rows if r["success at budget"] is not None]
         scores = [r["grasp score at budget"] for r in rows if r["grasp score at budget"] is not None]
         aucs = [r["AUC"] for r in rows if r["AUC"] is not None]
         improved = [r["improvement timestep"] for r in rows if r["improvement timestep"] is not None]
         walls = [r["wall (min)"] for r in rows if r["wall (min)"] is not None]
         timed = [r for r in rows if r["env steps/s"] is not None]
-        success_mean, success_std = _mean_std(at_budget)
-        auc_mean, auc_std = _mean_std(aucs)
+        arm = stats.summarize_arm(at_budget[variant], boot)
+        auc, improvement = stats.mean_interval(aucs, boot), stats.mean_interval(improved, boot)
         g = groups.get(variant)
         comparison.append({
-            "variant": variant, "seeds": len(rows), "seeds at budget": len(at_budget),
-            "success at budget (mean)": success_mean, "success at budget (std)": success_std,
+            "variant": variant, "seeds": len(rows), "seeds at budget": len(at_budget[variant]),
+            "success at budget (mean)": None if arm is None else arm.mean.point,
+            "success at budget (95% CI)": None if arm is None else _ci(arm.mean),
+            "success at budget (IQM)": None if arm is None else arm.iqm.point,
+            "success at budget (IQM 95% CI)": None if arm is None else _ci(arm.iqm),
+            "success at budget (std)": None if arm is None else arm.std,
             "grasp score at budget (mean)": _mean_std(scores)[0],
-            "AUC (mean)": auc_mean, "AUC (std)": auc_std,
-            "improvement timestep (mean over seeds)": float(np.mean(improved)) if improved else None,
-            "seeds improved": len(improved),
+        })  # fmt: skip
+        speed.append({
+            "variant": variant, "AUC (mean)": None if auc is None else auc.point, "AUC (95% CI)": _ci(auc),
+            "AUC (std)": _mean_std(aucs)[1],
+            "improvement timestep (mean over seeds)": None if improvement is None else improvement.point,
+            "improvement timestep (95% CI)": _ci(improvement), "seeds improved": len(improved),
             "improvement timestep of the mean curve": None if g is None else summary_row(g)["improvement_of_mean"],
             "wall (min, all seeds)": sum(walls) if walls else None,
         })  # fmt: skip
@@ -352,32 +598,71 @@ def summarize(
             "env steps/s (whole stack, wall)": rate, "public training loop (env steps/s)": f"{lo:g}-{hi:.2g}",
             "ratio (vs the faster public end)": None if rate is None else rate / hi,
         })  # fmt: skip
-    out = {"comparison": comparison, "runs": [r for rows in per_run.values() for r in rows]}
+    first = next(iter(runs), None)
+    against = []
+    for variant in list(runs)[1:]:
+        c = stats.compare(at_budget[variant], at_budget[first], boot) if first is not None else None
+        verdict = None
+        if c is not None and min(len(at_budget[variant]), len(at_budget[first])) < 2:
+            verdict = "one seed: no interval to compare"  # a one-run interval is a point
+        elif c is not None:
+            verdict = ("within noise (the 95% CIs of the mean overlap)" if c.within_noise
+                       else "separated (the 95% CIs of the mean do not overlap)")  # fmt: skip
+        against.append({
+            "variant": variant, "against": first,
+            "P(improvement)": None if c is None else c.probability_of_improvement.point,
+            "P(improvement) 95% CI": None if c is None else _ci(c.probability_of_improvement),
+            "success at budget": verdict,
+        })  # fmt: skip
+    out_sections: dict[str, list[dict[str, Any]]] = {
+        "comparison": comparison, "learning speed": speed, "against the first arm": against,
+    }  # fmt: skip
+    if protocol is not None:
+        out_sections["against the public reference"] = reference_rows(protocol, runs, boot)
+    out_sections["runs"] = [r for rows in per_run.values() for r in rows]
     if task not in TASK_VARIANTS:  # the public anchor is Equi-RSAC's training loop
-        out["training loop against the public Equi-RSAC code"] = loop
-    return out
+        out_sections["training loop against the public Equi-RSAC code"] = loop
+    if out is not None:
+        _write_pngs(task, runs, at_budget, out, boot, protocol)
+    return out_sections
+
+
+def _write_pngs(task: str, runs: dict[str, list[Path]], at_budget: dict[str, list[float]], out: Path,
+                boot: stats.Bootstrap, protocol: Protocol | None) -> None:  # fmt: skip
+    bands = {v: b for v in runs if (b := arm_band(runs[v], boot)) is not None and b.steps.size}
+    if bands:
+        render_curves(bands, protocol.reference if protocol else {}, protocol.reference_name if protocol else "",
+                      out / f"curves-{task}.png",
+                      f"{task}: success rate vs env steps (mean, 95% bootstrap CI over seeds)")  # fmt: skip
+    profiles = stats.performance_profiles(at_budget, PROFILE_TAUS, boot)
+    if profiles:
+        render_profile(profiles, out / f"profile-{task}.png",
+                       f"{task}: performance profile of success at the budget (95% CI)")  # fmt: skip
 
 
 def run(cfg: LearningBenchConfig) -> dict:
     s = settings(cfg)
     for variant in s.variants:  # before training anything: no run directory with other settings
-        for seed in range(s.seeds):
+        for seed in s.seed_list:
             check_existing(cfg, variant, seed, s)
     started = time.monotonic()
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    runs: dict[str, list[Path]] = {}
-    for variant in s.variants:
-        for seed in range(s.seeds):
-            runs.setdefault(variant, []).append(train(cfg, variant, seed, s))
-    png = cfg.out / f"curves-{cfg.task}.png"
+    out = out_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = {variant: [train(cfg, variant, seed, s) for seed in s.seed_list] for variant in s.variants}
     from services.launcher import RunConfig
 
     learner = s.learner or f"{RunConfig().learner_preset} (mea run's default)"
-    sections = summarize(cfg.task, runs, s.budget, png, learner)
-    meta = {"preset": cfg.preset, "task": cfg.task, "budget": s.budget, "seeds": s.seeds, "demos": s.demos,
-            "learner": learner, "eval_every": s.eval_every, "eval_episodes": s.eval_episodes,
-            "final_eval_episodes": s.final_eval_episodes, "curves_png": str(png), "out": str(cfg.out),
-            "minutes": round((time.monotonic() - started) / 60, 1)}  # fmt: skip
+    boot = stats.Bootstrap(reps=cfg.bootstrap_reps, seed=cfg.bootstrap_seed)
+    sections = summarize(cfg.task, runs, s.budget, out, learner, boot, s.protocol)
+    meta = {"preset": cfg.preset, "protocol": cfg.protocol or None, "task": cfg.task, "budget": s.budget,
+            "seeds": s.seeds, "seed list (every arm)": list(s.seed_list), "demos": s.demos,
+            "random_steps": s.random_steps, "learner": learner, "eval_every": s.eval_every,
+            "eval_episodes": s.eval_episodes, "final_eval_episodes": s.final_eval_episodes,
+            "bootstrap": {"reps": boot.reps, "confidence": boot.confidence, "seed": boot.seed,
+                          "method": "rliable stratified bootstrap, percentile"},
+            "reference": None if s.protocol is None else s.protocol.reference_name,
+            "curves_png": str(out / f"curves-{cfg.task}.png"), "profile_png": str(out / f"profile-{cfg.task}.png"),
+            "out": str(out), "minutes": round((time.monotonic() - started) / 60, 1)}  # fmt: skip
     result = emit("learning", sections, measured={}, as_json=cfg.json, meta=meta)
-    (cfg.out / f"result-{cfg.task}.json").write_text(json.dumps(result, indent=2, default=float) + "\n")
+    (out / f"result-{cfg.task}.json").write_text(json.dumps(result, indent=2, default=float) + "\n")
     return result

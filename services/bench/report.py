@@ -19,6 +19,8 @@ def _fmt(v: Any) -> str:
         return "yes" if v else "NO"
     if isinstance(v, float):
         return f"{v:,.3g}" if abs(v) < 1000 else f"{v:,.0f}"
+    if isinstance(v, (list, tuple)):  # an interval [lo, hi]
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
     return str(v)
 
 

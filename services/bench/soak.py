@@ -137,7 +137,8 @@ def run(cfg: SoakBenchConfig) -> dict:
     from services.bench.system import connect_to_run, stop_run
 
     port = free_port()
-    cmd = [sys.executable, "-m", "services.cli", "run", *cfg.run_args, "--run-dir", str(cfg.run_dir),
+    stack_dir = cfg.run_dir / f"stack-{int(time.time())}"  # a fresh run dir each soak: mea run reuses none
+    cmd = [sys.executable, "-m", "services.cli", "run", *cfg.run_args, "--run-dir", str(stack_dir),
            "--listen", f"tcp/127.0.0.1:{port}", "--duration-seconds", str(cfg.minutes * 60),
            "--log-format", "json"]  # fmt: skip
     _log(" ".join(cmd[2:]))

@@ -13,12 +13,14 @@ P-controller took, and env steps/s (the transition prior is a general-task measu
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import multiprocessing as mp
 import time
 
 import numpy as np
 
 from services.bench.report import emit
+from services.tasks.experts import seed_for_style
 
 STYLES = ("direct", "probe")
 
@@ -48,15 +50,16 @@ def _expert_job(task: str, style: str, episodes: int, seed_base: int) -> dict:
     success = touched = steps = 0
     fixed_bodies = None
     t0 = time.perf_counter()
-    for k in range(episodes):
-        seed = seed_base + k
-        env.reset(seed)
-        expert = env.task.expert(env, style, np.random.default_rng([seed, 3]))
+    seeds = itertools.count(seed_base)
+    for _ in range(episodes):
+        # the observable expert (the demos'): a style is a layout, so skip to the next seed that gives it
+        obs = env.reset(seed_for_style(env, style, seeds))
+        expert = env.task.observable_expert(env)
         # the probe must touch the immovable object: it is whichever slot is not the movable one
         fixed_bodies = [b for b, _ in env.task.object_segments()[_fixed_name(env)]]
         touch = False
         for _ in range(env.settings.max_steps):
-            _, _, terminated, truncated, _ = env.step(expert.act())
+            obs, _, terminated, truncated, _ = env.step(expert.act(obs))
             steps += 1
             touch = touch or any(env.gripper_touches(b) for b in fixed_bodies)
             if terminated or truncated:

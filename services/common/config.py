@@ -7,11 +7,15 @@ overrides a field of that preset. Field docstrings are the ``--help`` text.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import io
 import json
+import shlex
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NoReturn, TypeVar
 
 import tyro
 
@@ -74,14 +78,103 @@ class ServiceConfig:
         return out
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse that refuses bad input in one line (``PROG: what is wrong``), exit code 2."""
+
+    def error(self, message: str):  # type: ignore[override]
+        refuse(self.prog, f"{message} (see {self.prog} --help)")
+
+
+def refuse(prog: str, message: str) -> NoReturn:
+    """Bad input: one line on stderr naming what is wrong, exit code 2 (docs/cli.md); characters that
+    do not print (a newline in a value) are shown escaped, so it stays one line."""
+    line = "".join(c if c.isprintable() else repr(c)[1:-1] for c in f"{prog}: {message}")
+    print(line, file=sys.stderr)
+    raise SystemExit(2)
+
+
+class _RefusedError(Exception):
+    """tyro is about to refuse the command line: the one line to print instead of its box."""
+
+
+def _flag(arg: Any) -> str:
+    lowered = arg.lowered
+    name = "/".join(lowered.name_or_flags) or str(lowered.metavar)
+    return f"{name} {lowered.metavar}" if lowered.metavar and lowered.name_or_flags else name
+
+
+def _one_line(event: Any) -> None:
+    """tyro's parse-error hook (tyro pinned: the hook is private API): raise the event as one line;
+    events not known here fall through to tyro's own box (still exit code 2)."""
+    from tyro import _errors as e
+
+    if isinstance(event, e.InstantiationFailure):  # a bad value, or the config's own checks
+        message = event.message.strip().splitlines()[0] if event.message.strip() else "invalid value"
+        raise _RefusedError(message if event.argument is None else f"{_flag(event.argument)}: {message}")
+    if isinstance(event, e.UnrecognizedArgs):
+        raise _RefusedError(f"unrecognized option(s) {' '.join(event.tokens)} (see {event.prog} --help)")
+    if isinstance(event, e.InvalidChoice):
+        choices = ", ".join(event.choices)
+        raise _RefusedError(f"{_flag(event.argument)}: {event.value!r} is not one of {choices}")
+    if isinstance(event, e.BadValue):
+        got = "" if event.offending_value is None else f", not {event.offending_value!r}"
+        raise _RefusedError(f"{_flag(event.argument)}: needs a value of that form{got}")
+    if isinstance(event, e.MissingArgs):
+        raise _RefusedError("missing " + ", ".join(_flag(a.arg) for a in event.missing_arguments))
+
+
+def cli(cls: type[C], argv: Sequence[str], prog: str, description: str, default: C | None = None) -> C:
+    """``tyro.cli`` whose refusals are one line (``prog: what is wrong``) with exit code 2, like every
+    other refusal of bad input; ``--help`` is tyro's."""
+    try:
+        with _parse_error_hook(_one_line):
+            return tyro.cli(cls, prog=prog, description=description, args=list(argv), default=default)
+    except _RefusedError as exc:
+        refuse(prog, str(exc))
+
+
+def _parse_error_hook(hook):
+    try:
+        from tyro._errors import on_parse_error
+    except ImportError:  # another tyro: its own error boxes
+        return contextlib.nullcontext()
+    return on_parse_error(hook)
+
+
+def presets_line(presets: Mapping[str, Any]) -> str:
+    """The ``--help`` line naming a command's presets ("" when it has only its default)."""
+    if len(presets) < 2:
+        return ""
+    return (f"Presets (--preset NAME, applied before the other flags): {', '.join(presets)}; "
+            f"the default is {next(iter(presets))}.")  # fmt: skip
+
+
 def parse(cls: type[C], presets: Mapping[str, C], argv: Sequence[str], prog: str, description: str) -> C:
-    """Parse ``[--preset NAME] [field flags...]`` into a frozen config."""
-    pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--preset", choices=sorted(presets), default=next(iter(presets)))
+    """Parse ``[--preset NAME] [field flags...]`` into a frozen config; bad input (a flag, a value or
+    the config's own checks in ``__post_init__``) is refused in one line, exit code 2."""
+    pre = OneLineParser(prog=prog, add_help=False)
+    pre.add_argument("--preset", choices=list(presets), default=next(iter(presets)))
     known, rest = pre.parse_known_args(list(argv))
-    desc = f"{description}\n\nPresets (--preset, applied before other flags): {', '.join(presets)}; default {next(iter(presets))}."
-    # a ValueError from a config's own checks (__post_init__) ends in tyro's error box, exit 2
-    return tyro.cli(cls, prog=prog, description=desc, args=rest, default=presets[known.preset])
+    desc = "\n\n".join(filter(None, (description, presets_line(presets))))
+    return cli(cls, rest, prog, desc, default=presets[known.preset])
+
+
+def override(cfg: C, flags: str, what: str) -> C:
+    """``cfg`` with command-line ``flags`` (one string, shell-quoted, e.g. ``"--sac.bc-weight 0"``)
+    applied by the same parser as the service's own command; ValueError with tyro's one-line reason
+    (``what`` names the option) on a bad flag, and nothing printed."""
+    args = shlex.split(flags)
+    if not args:
+        return cfg
+    buf = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(buf), contextlib.redirect_stdout(buf):
+            return tyro.cli(type(cfg), args=args, default=cfg, prog=what)
+    except SystemExit:
+        # tyro's message box: its first line with a colon says what is wrong
+        lines = [ln.strip(" │|-─╭╮╰╯") for ln in buf.getvalue().splitlines()]
+        reason = next((ln for ln in lines if ": " in ln), "bad flags")
+        raise ValueError(f"{what} {flags!r}: {reason}") from None
 
 
 def to_jsonable(cfg: Any) -> Any:

@@ -96,7 +96,9 @@ def resolve(path: Path, version: int | None = None) -> Path:
 
 def read(path: Path, key: bytes | None, limits: Limits = DEFAULT_LIMITS) -> WeightsBlob:
     """The blob in ``path``, checked: with ``key`` its seal must verify and name a learner or an
-    evaluator; its digest must match. ``key`` None reads only unsealed files (a run that did not authenticate)."""
+    evaluator; its digest must match; a ``weights-<version>.blob`` must hold that version. ``key``
+    None reads only unsealed files (a run that did not authenticate). A refusal names the path and
+    the check that failed (seal, digest, version or format)."""
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -111,6 +113,24 @@ def read(path: Path, key: bytes | None, limits: Limits = DEFAULT_LIMITS) -> Weig
             raise WeightsFileError(
                 f"{path}: the file is signed; give the run's key to check it (--service.run-key-file)"
             )
-        return WeightsBlob.decode(data, limits)
+        if not data:
+            raise ProtocolError("<message>", "the file is empty")
+        blob = WeightsBlob.decode(data, limits)
     except ProtocolError as exc:
-        raise WeightsFileError(f"{path}: refused: {exc}") from None
+        raise WeightsFileError(f"{path}: refused, {_failure(exc.field)}: {exc}") from None
+    named = NAME.fullmatch(path.name)
+    if named is not None and int(named.group(1)) != blob.version:  # the digest covers tensors only
+        raise WeightsFileError(
+            f"{path}: refused, it holds version {blob.version}, not the {int(named.group(1))} of its name "
+            "(damaged or renamed)"
+        )
+    return blob
+
+
+def _failure(field: str) -> str:
+    """Which check a refused file failed, in words (the exception's text has the details)."""
+    if field in ("<seal>", "<sender>"):
+        return "its seal does not verify (damaged, altered, or sealed by another run or service)"
+    if field == "WeightsBlob.digest":
+        return "its digest does not match its tensors (damaged or altered)"
+    return "not a valid weights file (damaged, or another format)"

@@ -6,7 +6,7 @@ The arithmetic on the records lives in the pure ``services.evaluator.core.metric
 only the file.
 
 A line that does not parse (typically a last line truncated by a crash) is skipped with a logged
-warning, never an error; :func:`append_history` first terminates such a partial line so the next
+warning naming the file and the line number, never an error; :func:`append_history` first terminates such a partial line so the next
 record starts on its own line.
 """
 
@@ -24,8 +24,9 @@ HISTORY = Path("eval") / "history.jsonl"
 """Where the eval history lives inside a run directory."""
 
 
-def read_history(path: str | os.PathLike) -> list[dict]:
-    """All records of a history file, in file order; unparsable lines are skipped with a warning.
+def read_history(path: str | os.PathLike, problems: list[str] | None = None) -> list[dict]:
+    """All records of a history file, in file order; each line that is not a JSON object is skipped
+    with a warning naming the file and the line number (and appended to ``problems`` if given).
 
     Raises FileNotFoundError if the file does not exist."""
     records: list[dict] = []
@@ -37,14 +38,14 @@ def read_history(path: str | os.PathLike) -> list[dict]:
             continue
         try:
             rec = json.loads(line)
+            why = "" if isinstance(rec, dict) else f"a JSON {type(rec).__name__}, not an object"
         except json.JSONDecodeError as exc:
-            where = "last line (truncated?)" if i == last else f"line {i + 1}"
-            log.warning("skipping unreadable eval history line",
-                        extra={"path": str(path), "line": i + 1, "where": where, "error": str(exc)})  # fmt: skip
-            continue
-        if not isinstance(rec, dict):
-            log.warning("skipping eval history line that is not an object",
-                        extra={"path": str(path), "line": i + 1})  # fmt: skip
+            why = f"not JSON ({exc})" + (", truncated by a crash?" if i == last else "")
+        if why:
+            problem = f"{path}: line {i + 1} skipped: {why}"
+            if problems is not None:
+                problems.append(problem)
+            log.warning(f"unreadable eval history line: {problem}", extra={"path": str(path), "line": i + 1})
             continue
         records.append(rec)
     return records

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services.common.config import OneLineParser
 from services.evaluator.core.metrics import (
     INTERPOLATIONS,
     align,
@@ -187,7 +188,7 @@ def render(groups: Sequence[Group], out: Path, title: str = "") -> None:
 
 
 def parse_args(argv: Sequence[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(  # bad flags: one line, exit code 2
         prog="mea plot",
         description="Render learning curves (success rate vs env steps, mean ± std over runs with the "
         "same label) from RUN_DIR/eval/history.jsonl to a PNG, and print a summary table.",

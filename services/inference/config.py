@@ -56,6 +56,9 @@ class ServeConfig:
             raise ValueError("torch_threads must be >= 0")
         if self.limits_file:
             load_limits(Path(self.limits_file))  # fail while parsing flags, naming the key
+        if self.weights and not Path(self.weights).exists():
+            raise ValueError(f"--weights {self.weights}: the path does not exist (a weights file, a run "
+                             "directory or a folder of weights files)")  # fmt: skip
 
     def settings(self) -> ServeSettings:
         return ServeSettings(max_observation_age=self.max_observation_age, session_timeout=self.session_timeout,

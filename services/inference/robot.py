@@ -343,14 +343,20 @@ def limits_entry(limits: Limits) -> dict:
 
 
 def write_limits(cfg: RobotConfig) -> Path:
-    """The simulated arm's envelope as a limits file (``services.inference.config``) for its robot id."""
+    """The simulated arm's envelope as a limits file (``services.inference.config``) for its robot id
+    (added to the file's robots when it is one already); ValueError if the file is something else."""
+    path = Path(cfg.write_limits)
+    try:  # before the simulator starts: a file that is not a limits file is refused as it is
+        data = json.loads(path.read_text()) if path.exists() else {}
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"--write-limits {path}: not a limits file ({exc})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("robots", {}), dict):
+        raise ValueError(f"--write-limits {path}: not a limits file (an object with `robots` expected)")
     robot = SimRobot(cfg.task, cfg.env_settings())
     try:
         entry = limits_entry(sim_limits(robot.env))
     finally:
         robot.close()
-    path = Path(cfg.write_limits)
-    data = json.loads(path.read_text()) if path.exists() else {}
     data.setdefault("robots", {})[cfg.session] = entry
     path.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
     return path
@@ -359,7 +365,11 @@ def write_limits(cfg: RobotConfig) -> Path:
 def main(argv: Sequence[str]) -> int:
     cfg = config.parse(RobotConfig, {"default": RobotConfig()}, argv, "mea robot", RobotConfig.__doc__ or "")
     if cfg.write_limits:
-        print(f"wrote the envelope of {cfg.session} ({cfg.task}) to {write_limits(cfg)}")
+        try:
+            path = write_limits(cfg)
+        except ValueError as exc:
+            config.refuse("mea robot", str(exc))
+        print(f"wrote the envelope of {cfg.session} ({cfg.task}) to {path}")
         return 0
     try:
         summary = run(cfg)

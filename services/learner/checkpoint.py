@@ -18,7 +18,9 @@ as older than every numbered one: they are read and, in time, deleted like them.
 
 Loading uses ``torch.load(weights_only=True)``: only tensors, numbers, strings, lists and dicts can
 come back, never arbitrary Python objects. Numpy arrays (replay) travel as tensors and numpy's RNG
-state as a JSON string.
+state as a JSON string. Every tensor is written from the CPU and read onto it (``map_location``),
+whatever device the learner trains on: a run checkpointed on a GPU resumes on a CPU and back (the
+networks' ``load_state_dict`` copies onto their device, the optimisers move their state to it).
 
 What goes in (``save_trainer``) and how it comes back into a trainer (``restore_trainer``) is
 assembled here too, beside the file format, so the two cannot drift apart. ``due`` says when the
@@ -31,8 +33,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import pickle
 import re
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -67,6 +71,18 @@ def _to_torch(x: Any) -> Any:
         return {k: _to_torch(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [_to_torch(v) for v in x]
+    return x
+
+
+def on_cpu(x: Any) -> Any:
+    """``x`` (a state dict: dicts, lists and tuples of tensors and plain values) with every tensor on
+    the CPU; CPU tensors are kept as they are (no copy)."""
+    if isinstance(x, torch.Tensor):
+        return x.cpu()
+    if isinstance(x, dict):
+        return {k: on_cpu(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(on_cpu(v) for v in x)
     return x
 
 
@@ -171,24 +187,66 @@ class CheckpointError(RuntimeError):
     """A checkpoint is missing, unreadable or of another format."""
 
 
+def _why(exc: Exception) -> str:
+    """An unreadable checkpoint's reason in one short line (torch's first sentence)."""
+    text = str(exc).strip().split("\n")[0].split(". ")[0][:200]
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def read(path: Path) -> tuple[dict, dict, dict]:
+    """(learner state, replay state as numpy, meta) of the checkpoint file ``path``; CheckpointError
+    naming the file and why it cannot be used."""
+    try:
+        size = path.stat().st_size
+        whole = zipfile.is_zipfile(path)  # torch.save writes a zip archive; a cut one has no directory
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot read it ({exc.strerror})") from None
+    if not whole:
+        raise CheckpointError(
+            f"{path}: damaged, not a whole torch archive ({size} bytes; truncated or overwritten)"
+        )
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise CheckpointError(
+            f"{path}: refused, it holds objects other than tensors and plain data ({_why(exc)})"
+        ) from None
+    except Exception as exc:  # noqa: BLE001 - torch raises many kinds for a damaged archive
+        raise CheckpointError(f"{path}: damaged ({_why(exc)})") from None
+    if not isinstance(payload, dict):
+        raise CheckpointError(f"{path}: not a learner checkpoint (holds a {type(payload).__name__})")
+    if payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: format {payload.get('format')!r}, expected {FORMAT}")
+    missing = [k for k in ("learner", "replay", "meta") if k not in payload]
+    if missing:
+        raise CheckpointError(f"{path}: not a learner checkpoint (no {', '.join(missing)})")
+    try:
+        meta = json.loads(payload["meta"])
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path}: its metadata is unreadable ({_why(exc)})") from None
+    return payload["learner"], _to_numpy(payload["replay"]), meta
+
+
 def load(directory: Path) -> tuple[dict, dict, dict]:
-    """(learner state, replay state as numpy, meta) of the newest readable checkpoint: one that is
-    unreadable is reported and the next older one tried."""
+    """(learner state, replay state as numpy, meta) of the newest readable checkpoint: each unreadable
+    one is named in a warning with why, and the next older one tried."""
     errors = []
-    for path in checkpoints(directory):
+    candidates = checkpoints(directory)
+    for i, path in enumerate(candidates):
         try:
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-            if payload.get("format") != FORMAT:
-                raise CheckpointError(f"{path}: format {payload.get('format')!r}, expected {FORMAT}")
-            if errors:
-                log.warning("newer checkpoints unreadable; resuming an older one",
-                            extra={"path": str(path), "errors": "; ".join(errors)[:1000]})  # fmt: skip
-            return payload["learner"], _to_numpy(payload["replay"]), json.loads(payload["meta"])
-        except Exception as exc:  # noqa: BLE001 - report every candidate, then give up
-            errors.append(f"{path}: {exc}")
+            state = read(path)
+        except CheckpointError as exc:
+            errors.append(str(exc))
+            then = "trying the next older one" if i + 1 < len(candidates) else "no older one"
+            log.warning(f"checkpoint skipped: {exc}; {then}", extra={"path": str(path)})
+            continue
+        if errors:
+            log.warning(f"newer checkpoints unreadable; resuming an older one, {path}",
+                        extra={"path": str(path), "unreadable": len(errors)})  # fmt: skip
+        return state
     if not errors:
         raise CheckpointError(f"no checkpoint in {directory}")
-    raise CheckpointError("; ".join(errors))
+    raise CheckpointError(f"no readable checkpoint in {directory}: " + "; ".join(errors))
 
 
 def record_published(directory: Path, run_id: str, version: int) -> None:
@@ -277,7 +335,7 @@ def save_trainer(
         "config": config,
         "saved_at": time.time(),
     }
-    learner = {"sac": trainer.agent.state_dict(), "rng": rng_state(trainer.rng)}  # "sac": any agent
+    learner = {"sac": on_cpu(trainer.agent.state_dict()), "rng": rng_state(trainer.rng)}  # "sac": any agent
     replay = trainer.replay.state_dict()
     return save(directory, learner=learner, replay=replay, meta=meta, keep=keep, max_bytes=max_bytes)
 

@@ -33,6 +33,40 @@ from services.learner.core.sac import RecurrentSAC, SacSettings
 from services.learner.core.trainer import Trainer, TrainerSettings
 
 ALGORITHMS = ("equi_rsac", "rsac", "gasv2")
+DEVICES = re.compile(r"cpu|cuda(:\d+)?")
+"""Learner devices: the CPU or a CUDA GPU (``cuda`` is the current one, ``cuda:N`` the N-th)."""
+
+
+def check_device(device: str, option: str) -> None:
+    """ValueError in one line naming ``option`` unless ``device`` is cpu, cuda or cuda:N and, for
+    CUDA, such a GPU is visible to this process."""
+    if not DEVICES.fullmatch(device):
+        raise ValueError(f"{option} must be cpu, cuda or cuda:N, not {device!r}")
+    if device == "cpu":
+        return
+    if not torch.cuda.is_available():
+        why = "torch is built without CUDA" if torch.version.cuda is None else "no GPU is visible"
+        raise ValueError(f"{option} {device!r}: CUDA is unavailable here ({why}, torch {torch.__version__}); "
+                         "use cpu")  # fmt: skip
+    count, index = torch.cuda.device_count(), torch.device(device).index
+    if index is not None and index >= count:
+        raise ValueError(
+            f"{option} {device!r}: this machine has {count} CUDA device(s), cuda:0..cuda:{count - 1}"
+        )
+
+
+def prepare_device(device: str) -> torch.device:
+    """``device`` as a torch device; on CUDA, allow TF32 for fp32 matmuls and convolutions (about
+    3 decimal digits, as the PyTorch default for cuDNN convolutions already is) for this process."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        if hasattr(torch.backends.cuda.matmul, "fp32_precision"):  # torch >= 2.9; the old flags warn
+            torch.backends.cuda.matmul.fp32_precision = "tf32"
+            torch.backends.cudnn.conv.fp32_precision = "tf32"
+        else:
+            torch.backends.cuda.matmul.allow_tf32 = True
+            torch.backends.cudnn.allow_tf32 = True
+    return dev
 
 
 @dataclass(frozen=True)
@@ -91,15 +125,26 @@ class LearnerConfig:
     """Version lineage id; empty derives one from run_dir and the start time (kept on --resume)."""
     resume: bool = False
     """Continue from run_dir/checkpoints if there is a checkpoint there."""
+    init_actor: Path | None = None
+    """Start the actor from this weights file (or the newest in this run dir / weights folder: a clone
+    from `mea bench imitation`, or weights a learner wrote) when there is no checkpoint to continue;
+    with a shared encoder the critic's encoder too (``services.learner.init_actor``)."""
     max_updates: int = 0
     """Stop after this many updates (0: until stopped)."""
     max_env_steps: int = 0
     """Env-step budget of the run: the replay gate never allows more (actors stop there); 0: none."""
+    tensorboard_dir: Path | None = None
+    """Write the training scalars (means over tensorboard_every updates, against env steps) here as
+    TensorBoard events; None: off (`mea run` sets RUN_DIR/tb)."""
+    tensorboard_every: int = 50
+    """Updates per TensorBoard point."""
     threads: int = 0
     """torch intra-op threads (0: torch's default)."""
     device: str = "cpu"
-    """gasv2: torch device of the networks and batches (e.g. cuda on a GPU workstation; the replay
-    stays in host memory and published weights are copied to the CPU). SAC runs on the CPU."""
+    """torch device of the networks, optimisers and batches: cpu, cuda or cuda:N (a GPU workstation).
+    The replay stays in host memory; published weights and checkpoints are on the CPU, so a run
+    resumes on another device. On CUDA: TF32 matmuls, and the update metrics are read from the
+    device every tensorboard_every updates (means), not after each update."""
     seed: int = 0
     """Seed of networks, sampling and exploration noise."""
     queue: int = 64
@@ -134,8 +179,7 @@ class LearnerConfig:
             raise ValueError(f"demo_fraction must be in [0, 1], got {self.demo_fraction}")
         if self.net.critic_input == "state" and self.sac.share_encoder:
             raise ValueError("sac.share_encoder needs the image critic (net.critic_input image)")
-        if self.device != "cpu" and self.algorithm != "gasv2":
-            raise ValueError(f"device {self.device!r}: only the gasv2 learner runs off the CPU")
+        check_device(self.device, "device")
         if self.samples_per_insert <= 0 or self.min_steps < 0 or self.error_buffer < 0:
             raise ValueError("samples_per_insert must be > 0, min_steps and error_buffer >= 0")
 
@@ -148,6 +192,7 @@ class LearnerConfig:
             successes_as_demos=self.successes_as_demos,
             max_env_steps=self.max_env_steps,
             max_updates=self.max_updates,
+            metrics_every=1 if self.device == "cpu" else max(1, self.tensorboard_every),
         )
 
 
@@ -261,9 +306,9 @@ def build_trainer(cfg: LearnerConfig, guard: AbstractContextManager[object] | No
     limiter = SampleToInsertRatio(cfg.samples_per_insert, cfg.min_steps, cfg.error_buffer)
     if cfg.algorithm == "gasv2":
         replay = ChunkReplay(cfg.replay_capacity, seq_len=cfg.seq_len, seed=cfg.seed)
-        agent = GasV2Agent(cfg.dreamer, seed=cfg.seed, device=cfg.device)
+        agent = GasV2Agent(cfg.dreamer, seed=cfg.seed, device=prepare_device(cfg.device))
         return GasV2Trainer(agent, replay, limiter, rng, cfg.trainer_settings(), cfg.chunk_length, guard)
-    sac = RecurrentSAC(build_actor(cfg.net), build_critic(cfg.net), cfg.sac)
+    sac = RecurrentSAC(build_actor(cfg.net), build_critic(cfg.net), cfg.sac, prepare_device(cfg.device))
     replay = SequenceReplay(
         cfg.replay_capacity,
         image_size=cfg.net.image_size,
@@ -275,4 +320,13 @@ def build_trainer(cfg: LearnerConfig, guard: AbstractContextManager[object] | No
     return Trainer(sac, replay, limiter, rng, cfg.trainer_settings(), guard)
 
 
-__all__ = ["ALGORITHMS", "PRESETS", "LearnerConfig", "build_trainer", "default_run_id"]
+__all__ = [
+    "ALGORITHMS",
+    "DEVICES",
+    "PRESETS",
+    "LearnerConfig",
+    "build_trainer",
+    "check_device",
+    "default_run_id",
+    "prepare_device",
+]

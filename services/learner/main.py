@@ -52,8 +52,9 @@ from services.common import config, weights_file
 from services.common.bus.base import Bus, Subscription
 from services.common.config import ServiceConfig
 from services.common.runtime import ServiceContext, subscribing_bus_factory
+from services.common.scalars import ScalarLog
 from services.common.weights import WeightsServer
-from services.learner import checkpoint
+from services.learner import checkpoint, init_actor
 from services.learner.config import PRESETS, LearnerConfig, build_trainer, default_run_id
 from services.learner.core.gasv2.policy import GasV2Spec
 from services.learner.core.policy import PolicySpec
@@ -88,6 +89,11 @@ class Learner:
         self._acks_due, self._acked_at = False, 0.0
         self.wait_seconds = 0.0
         self._rate = UpdateRate()
+        self.scalars = (
+            None
+            if cfg.tensorboard_dir is None
+            else ScalarLog(cfg.tensorboard_dir, cfg.tensorboard_every, ctx.instance)
+        )
         self._stop_ingest = threading.Event()
         self._ingest_thread: threading.Thread | None = None
         self.ckpt_dir = cfg.run_dir / "checkpoints"
@@ -153,9 +159,13 @@ class Learner:
             self.wait_seconds += waited
             self.mx["wait"].inc(waited)
             return False
-        self.last = info
-        record_update(self.mx, info, time.perf_counter() - t0, self._rate.tick(time.monotonic()))
-        if not math.isfinite(info["critic_loss"]):
+        # on a GPU the losses come every metrics_every updates (trainer.py, "Devices"): keep the last read
+        self.last = info if self.trainer.settings.metrics_every == 1 else self.last | info
+        rate = self._rate.tick(time.monotonic())
+        record_update(self.mx, info, time.perf_counter() - t0, rate)
+        if self.scalars is not None:
+            self.scalars.add(info | {"updates_per_second": rate}, self.trainer.env_steps)
+        if not math.isfinite(info.get("critic_loss", 0.0)):
             log.error("non-finite critic loss", extra={"updates": self.trainer.updates})
         if self.trainer.publish_due():
             self.publish_weights()
@@ -199,6 +209,16 @@ class Learner:
         log.info("checkpoint", extra={"updates": self.trainer.updates, "version": self.version,
                                       "seconds": round(time.perf_counter() - t0, 3)})  # fmt: skip
         return path
+
+    def start_actor_from(self, path: Path) -> None:
+        """Load the actor (and a critic encoder it shares) from weights on disk: ``--init-actor``."""
+        try:
+            file, blob = init_actor.read(path)
+            init_actor.load_into(self.trainer, init_actor.check_fits(blob, self.cfg))
+        except ValueError as exc:
+            raise SystemExit(f"learner: --init-actor: {exc}") from None
+        log.info("actor initialised from weights", extra={"file": str(file), "source_run": blob.run_id,
+                                                          "source_version": blob.version, "digest": blob.digest[:16]})  # fmt: skip
 
     def restore(self) -> None:
         """Continue the run in ``ckpt_dir``: the checkpoint if there is one, and in any case past the
@@ -258,15 +278,18 @@ def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None =
     make_bus = subscribing_bus_factory(bus_factory, declare)
     with ServiceContext("learner", cfg.service, bus_factory=make_bus, counters=counters) as ctx:
         core = Learner(cfg, ctx, holder["sub"])  # type: ignore[arg-type]
+        fresh = not (cfg.resume and checkpoint.exists(core.ckpt_dir))
         if cfg.resume:
             core.restore()
+        if cfg.init_actor is not None and fresh:  # a restarted learner with a checkpoint keeps its own
+            core.start_actor_from(cfg.init_actor)
         config.save(dataclasses.replace(cfg, run_id=core.run_id), cfg.run_dir / "learner.json")
         holder["core"] = core
         core.publish_weights()
         core.start_ingest()
         ctx.detail = f"run {core.run_id}"
         group = "-" if cfg.algorithm == "gasv2" else cfg.net.group
-        log.info("training", extra={"algorithm": cfg.algorithm, "group": group, "run_id": core.run_id,
+        log.info("training", extra={"algorithm": cfg.algorithm, "group": group, "device": cfg.device, "run_id": core.run_id,
                                     "version": core.version, "replay_bytes": core.trainer.replay.nbytes})  # fmt: skip
         try:
             core.loop()
@@ -276,6 +299,8 @@ def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None =
                 core.publish_weights()
             core.save_checkpoint()
             core.server.close()
+            if core.scalars is not None:
+                core.scalars.close()
         log.info("learner done", extra={"updates": core.trainer.updates, "version": core.version})
     return 0
 

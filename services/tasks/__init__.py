@@ -9,9 +9,41 @@ general-manipulation tasks, or the task's own env where its class has a ``make_e
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import importlib
+import os
+import sys
 
-from services.tasks.env import EXPERT_STYLES, EnvSettings, ManipulationEnv, Observation, Task
+
+def _import_pybullet_quietly() -> None:
+    """pybullet's C code prints its build time (on fd 2 in this build) when imported; every task
+    module imports it after this package, so importing it here first with fds 1 and 2 on /dev/null
+    keeps that line off the user's terminal. C's buffers are flushed before the fds return."""
+    if "pybullet" in sys.modules:
+        return
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(AttributeError, OSError, ValueError):
+            stream.flush()
+    saved: dict[int, int] = {}
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd in (1, 2):
+            with contextlib.suppress(OSError):  # a closed fd has nothing to protect
+                saved[fd] = os.dup(fd)
+                os.dup2(null, fd)
+        importlib.import_module("pybullet")
+        ctypes.CDLL(None).fflush(None)
+    finally:
+        for fd, copy in saved.items():
+            os.dup2(copy, fd)
+            os.close(copy)
+        os.close(null)
+
+
+_import_pybullet_quietly()
+
+from services.tasks.env import EXPERT_STYLES, EnvSettings, ManipulationEnv, Observation, Task  # noqa: E402
 
 TASK_CLASSES: dict[str, str] = {
     "block_pull": "services.tasks.block_pull:BlockPull",

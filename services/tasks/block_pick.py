@@ -8,7 +8,14 @@ import numpy as np
 import pybullet as pb
 
 from services.tasks.env import ManipulationEnv, Task, workspace_xy_margin
-from services.tasks.experts import Approach, Follower, nearest_symmetric_yaw
+from services.tasks.experts import (
+    Approach,
+    Follower,
+    nearest_object,
+    nearest_symmetric_yaw,
+    object_positions,
+    object_yaws,
+)
 
 HALF = 0.025  # cube half extent (m)
 MOVABLE_MASS = 0.02  # kg
@@ -60,6 +67,10 @@ class BlockPick(Task):
     def expert(self, env: ManipulationEnv, style: str, rng: np.random.Generator):
         return PickExpert(env, self, style)
 
+    def observable_expert(self, env: ManipulationEnv) -> ObservablePickExpert:
+        """The expert whose decisions follow from the observation (demonstrations' default)."""
+        return ObservablePickExpert(env)
+
 
 class PickExpert:
     """Go above a cube, align, descend, close, lift. ``probe`` first tries the fixed cube.
@@ -103,7 +114,7 @@ class PickExpert:
         elif phase == "above":
             a, done = self.follow.action(np.array([pos[0], pos[1], self.TRAVEL]), yaw, jaw=1.0)
         elif phase == "down":
-            a, done = self.follow.action(np.array([pos[0], pos[1], self.GRASP]), yaw, jaw=1.0)
+            a, done = self.follow.action(np.array([pos[0], pos[1], PickExpert.GRASP]), yaw, jaw=1.0)
         elif phase == "close":  # hold still while the fingers close
             a, _ = self.follow.action(self.env.robot.tcp(), yaw, jaw=0.0)
             self.wait += 1
@@ -118,4 +129,73 @@ class PickExpert:
         if done:
             self.i += 1
             self.wait = 0
+        return a
+
+
+class ObservablePickExpert:
+    """The pick expert deciding from what it observes: ``act(obs)``.
+
+    It grasps the cube nearest the gripper (``nearest_object``) as PickExpert grasps, then lifts
+    with the jaw closed. A cube seen to rise with the gripper (RISE) is the movable one: the lift
+    goes on (success ends the episode). A cube that has not risen after LIFT_TRIES lifting steps
+    is released; the open gripper rises to TRAVEL + 0.05 and picks the other cube, which it then
+    lifts without letting go (one of the two moves). Geometry and motion come from the observed
+    cube poses, never from which cube is fixed or from contacts."""
+
+    RISE = 0.01  # m: a cube this much higher than at the grasp rose with the gripper
+    LIFT_TRIES = 2  # lifting steps before a cube that has not risen is let go
+
+    def __init__(self, env: ManipulationEnv) -> None:
+        self.env = env
+        self.follow = Follower(env)
+        self.approach = Approach(self.follow)
+        self.target: int | None = None  # slot of the cube acted on
+        self.phase = "above"
+        self.first = True  # still on the first cube (approached at a safe height)
+        self.wait = 0
+        self.tries = 0
+        self.grasp_yaw: float | None = None  # frozen at the descent: never turn a held cube
+        self.start_z = 0.0  # the target's observed height at the grasp
+
+    def act(self, obs) -> np.ndarray:
+        if self.target is None:
+            self.target = nearest_object(obs)
+        pos = object_positions(obs)[self.target]
+        stays = pos[2] - self.start_z < self.RISE
+        if self.phase == "lift" and self.first and self.tries >= self.LIFT_TRIES and stays:
+            self.phase, self.wait = "release", 0  # bounded lift: this cube stays down
+        robot = self.env.robot
+        if self.phase in ("above", "down"):
+            yaw = nearest_symmetric_yaw(float(object_yaws(obs)[self.target]), robot.target_yaw, 4)
+            self.grasp_yaw = yaw
+            if self.phase == "above" and self.first:
+                a, done = self.approach.act(pos[:2], yaw, jaw=1.0)
+            else:
+                height = PickExpert.TRAVEL if self.phase == "above" else PickExpert.GRASP
+                a, done = self.follow.action(np.array([pos[0], pos[1], height]), yaw, jaw=1.0)
+            if done:
+                self.phase = "down" if self.phase == "above" else "close"
+        elif self.phase == "close":  # hold still while the fingers close
+            a, _ = self.follow.action(robot.tcp(), self.grasp_yaw, jaw=0.0)
+            self.wait += 1
+            if self.wait >= 2:
+                self.phase, self.tries, self.start_z = "lift", 0, float(pos[2])
+        elif self.phase == "lift":
+            tip = robot.tcp()
+            a, _ = self.follow.action(
+                np.array([tip[0], tip[1], PickExpert.TRAVEL + 0.05]), self.grasp_yaw, jaw=0.0
+            )
+            self.tries += 1
+        elif self.phase == "release":  # open in place before rising
+            a, _ = self.follow.action(robot.tcp(), self.grasp_yaw, jaw=1.0)
+            self.wait += 1
+            if self.wait >= 1:
+                self.phase = "rise"
+        else:  # rise with the jaw open, then the other cube
+            tip = robot.tcp()
+            a, done = self.follow.action(
+                np.array([tip[0], tip[1], PickExpert.TRAVEL + 0.05]), self.grasp_yaw, jaw=1.0
+            )
+            if done:
+                self.phase, self.target, self.first = "above", 1 - self.target, False
         return a

@@ -5,7 +5,8 @@ invisible (same shape, size and colour). The scripted expert closes the jaw into
 at a safe height (pivot at or above L_z + 1 cm) to straight above the far side of a block (the side
 away from the other block) with the jaw's closing axis across the line between the blocks, lowers
 it vertically and drags the block along that line. The ``probe`` style first tries this on the
-fixed block (and so touches it), then lifts and does the same on the movable one.
+fixed block (and so touches it), then lifts and does the same on the movable one. The observable
+expert (the demonstrations' default) tries the nearest block and switches only if it did not move.
 """
 
 from __future__ import annotations
@@ -16,7 +17,14 @@ import numpy as np
 import pybullet as pb
 
 from services.tasks.env import ManipulationEnv, Task
-from services.tasks.experts import Approach, Follower
+from services.tasks.experts import (
+    Approach,
+    Follower,
+    moved,
+    nearest_object,
+    object_positions,
+    object_yaws,
+)
 from services.tasks.robot import WORKSPACE
 
 HALF = np.array([0.05, 0.05, 0.025])  # block half extents (m)
@@ -119,6 +127,10 @@ class BlockPull(Task):
             return PullExpert(env, self, [self.movable])
         raise ValueError(f"unknown expert style {style!r}")
 
+    def observable_expert(self, env: ManipulationEnv) -> ObservablePullExpert:
+        """The expert whose decisions follow from the observation (demonstrations' default)."""
+        return ObservablePullExpert(env)
+
 
 class PullExpert:
     """Close the jaw, travel above the far side of a block, lower the paddle behind it, drag the
@@ -187,4 +199,67 @@ class PullExpert:
             a, done = self.follow.action(np.array([tip[0], tip[1], self.TRAVEL]), PUSH_YAW, jaw=0.0)
         if done:
             self.i += 1
+        return a
+
+
+class ObservablePullExpert:
+    """The pull expert deciding from what it observes: ``act(obs)``.
+
+    It goes to the block nearest the gripper (``nearest_object``), lowers the paddle behind its far
+    side and probes it with short pushes (PullExpert.PROBE_STEP). If the block is seen to move
+    (``moved``) it drags it into the other one; if it has not moved after PROBE_PUSHES pushes, the
+    paddle lifts and drags the other block, without probing it (one of the two moves). Geometry
+    and motion come from the observed block poses, never from which block is fixed or from
+    contacts; motion is measured against the block's position when the probe began."""
+
+    def __init__(self, env: ManipulationEnv) -> None:
+        self.env = env
+        self.follow = Follower(env)
+        self.approach = Approach(self.follow)
+        self.target: int | None = None  # slot of the block acted on
+        self.phase = "travel"
+        self.first = True  # still on the first block (approached at a safe height)
+        self.known = False  # the target is known to be the movable block
+        self.pushes = 0
+        self.start: np.ndarray | None = None  # the target's observed position when its probe began
+
+    def _far_side(self, obs) -> tuple[np.ndarray, float]:
+        """Paddle goal beyond the target (away from the other block) and the outward direction."""
+        pos, yaw = object_positions(obs), object_yaws(obs)
+        t = self.target
+        out = 1.0 if pos[t, 1] >= pos[1 - t, 1] else -1.0
+        return np.array([pos[t, 0], pos[t, 1] + out * standoff(float(yaw[t]))]), out
+
+    def act(self, obs) -> np.ndarray:
+        if self.target is None:
+            self.target = nearest_object(obs)
+        if self.phase == "probe":
+            if moved(obs, self.target, self.start):
+                self.phase, self.known = "drag", True
+            elif self.pushes >= PullExpert.PROBE_PUSHES:  # bounded probe: it does not move
+                self.phase, self.target, self.known, self.first = "lift", 1 - self.target, True, False
+        goal_xy, out = self._far_side(obs)
+        tip = self.env.robot.tcp()
+        if self.phase == "travel":
+            if self.first:
+                a, done = self.approach.act(goal_xy, PUSH_YAW, jaw=0.0)
+            else:
+                a, done = self.follow.action(np.array([*goal_xy, PullExpert.TRAVEL]), PUSH_YAW, jaw=0.0)
+            if done:
+                self.phase = "lower"
+        elif self.phase == "lower":
+            a, done = self.follow.action(np.array([*goal_xy, PullExpert.PUSH_Z]), PUSH_YAW, jaw=0.0)
+            if done:
+                self.phase = "drag" if self.known else "probe"
+                self.start = object_positions(obs)[self.target]
+        elif self.phase in ("probe", "drag"):
+            x = object_positions(obs)[self.target, 0]  # stay centred on the block as it slides
+            step = PullExpert.PUSH_STEP if self.phase == "drag" else PullExpert.PROBE_STEP
+            goal = np.array([x, tip[1] - out * step, PullExpert.PUSH_Z])
+            a, _ = self.follow.action(goal, PUSH_YAW, jaw=0.0)
+            self.pushes += self.phase == "probe"
+        else:  # lift straight up before travelling to the other block
+            a, done = self.follow.action(np.array([tip[0], tip[1], PullExpert.TRAVEL]), PUSH_YAW, jaw=0.0)
+            if done:
+                self.phase = "travel"
         return a

@@ -16,7 +16,15 @@ import pybullet as pb
 
 from services.tasks import drawer_model as dm
 from services.tasks.env import ManipulationEnv, Task
-from services.tasks.experts import Approach, Follower, nearest_symmetric_yaw
+from services.tasks.experts import (
+    Approach,
+    Follower,
+    moved,
+    nearest_object,
+    nearest_symmetric_yaw,
+    object_positions,
+    object_yaws,
+)
 from services.tasks.robot import YAW_LIMIT
 
 SPACING = 0.12  # m between the two cabinets' centres, along their local y
@@ -98,6 +106,21 @@ class DrawerOpen(Task):
     def expert(self, env: ManipulationEnv, style: str, rng: np.random.Generator):
         return DrawerExpert(env, self, style)
 
+    def observable_expert(self, env: ManipulationEnv) -> ObservableDrawerExpert:
+        """The expert whose decisions follow from the observation (demonstrations' default)."""
+        return ObservableDrawerExpert(env)
+
+
+def grasp_yaw(drawer_yaw: float, current: float) -> float:
+    """Gripper yaw that closes the fingers across a drawer axis at ``drawer_yaw``: of the two, the
+    one nearer ``current``, kept inside the wrist's range."""
+    yaw = nearest_symmetric_yaw(drawer_yaw + math.pi / 2, current, 2)
+    if yaw > YAW_LIMIT:
+        yaw -= math.pi
+    elif yaw < -YAW_LIMIT:
+        yaw += math.pi
+    return yaw
+
 
 class DrawerExpert:
     """Above the handle, descend, close across the stem, pull along the drawer axis.
@@ -128,12 +151,7 @@ class DrawerExpert:
     def _yaw(self, body: int) -> float:
         """Gripper yaw that closes the fingers across the drawer axis (the nearer of the two)."""
         _, drawer_yaw = self.task.cabinet_pose(body)
-        yaw = nearest_symmetric_yaw(drawer_yaw + math.pi / 2, self.env.robot.target_yaw, 2)
-        if yaw > YAW_LIMIT:
-            yaw -= math.pi
-        elif yaw < -YAW_LIMIT:
-            yaw += math.pi
-        return yaw
+        return grasp_yaw(drawer_yaw, self.env.robot.target_yaw)
 
     def act(self) -> np.ndarray:
         body, phase = self.plan[min(self.i, len(self.plan) - 1)]
@@ -167,4 +185,78 @@ class DrawerExpert:
         if done:
             self.i += 1
             self.wait = 0
+        return a
+
+
+class ObservableDrawerExpert:
+    """The drawer expert deciding from what it observes: ``act(obs)``.
+
+    It grasps the handle of the drawer nearest the gripper (``nearest_object``) as DrawerExpert
+    does and tugs it (DrawerExpert.TUG along the drawer axis). A drawer seen to come out
+    (``moved``) is pulled open; one that has not moved after the tug is released, the gripper
+    rises to TRAVEL and opens the other drawer (one of the two moves). The handle and the drawer
+    axis come from the observed drawer poses (the sliding part: its frame is the cabinet's moved
+    out by the opening), never from which drawer is locked or from contacts."""
+
+    def __init__(self, env: ManipulationEnv) -> None:
+        self.env = env
+        self.follow = Follower(env)
+        self.approach = Approach(self.follow)
+        self.target: int | None = None  # slot of the drawer acted on
+        self.phase = "above"
+        self.first = True  # still on the first drawer (approached at a safe height)
+        self.wait = 0
+        self.grasp_yaw: float | None = None  # frozen at the descent: never turn while holding
+        self.grasp_tip: np.ndarray | None = None  # tool centre at the grasp
+        self.start: np.ndarray | None = None  # the drawer's observed position at the grasp
+
+    def _handle(self, obs, height: float) -> tuple[np.ndarray, np.ndarray]:
+        """Grasp point on the target's handle stem at ``height``, and the drawer's pull axis."""
+        pos, yaw = object_positions(obs)[self.target], float(object_yaws(obs)[self.target])
+        axis = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        grasp = pos + dm.GRASP_X * axis
+        return np.array([grasp[0], grasp[1], height]), axis
+
+    def act(self, obs) -> np.ndarray:
+        if self.target is None:
+            self.target = nearest_object(obs)
+        robot = self.env.robot
+        if self.phase == "tugged":  # does the drawer come out?
+            self.phase = "pull" if moved(obs, self.target, self.start) else "release"
+            self.wait = 0
+        if self.phase in ("above", "down"):
+            height = DrawerExpert.TRAVEL if self.phase == "above" else DrawerExpert.GRASP
+            goal, _ = self._handle(obs, height)
+            self.grasp_yaw = grasp_yaw(float(object_yaws(obs)[self.target]), robot.target_yaw)
+            if self.phase == "above" and self.first:
+                a, done = self.approach.act(goal[:2], self.grasp_yaw, jaw=1.0)
+            else:
+                a, done = self.follow.action(goal, self.grasp_yaw, jaw=1.0)
+            if done:
+                self.phase = "down" if self.phase == "above" else "close"
+        elif self.phase == "close":  # hold still while the fingers close
+            a, _ = self.follow.action(robot.tcp(), self.grasp_yaw, jaw=0.0)
+            self.grasp_tip = robot.tcp()
+            self.wait += 1
+            if self.wait >= 2:
+                self.start = object_positions(obs)[self.target]
+                self.phase = "tug" if self.first else "pull"
+        elif self.phase in ("tug", "pull"):
+            _, axis = self._handle(obs, 0.0)
+            dist = DrawerExpert.TUG if self.phase == "tug" else DrawerExpert.PULL_TO
+            a, _ = self.follow.action(self.grasp_tip + dist * axis, self.grasp_yaw, jaw=0.0)
+            if self.phase == "tug":
+                self.phase = "tugged"
+        elif self.phase == "release":  # open in place (the tug left the commanded pose ahead of the hand)
+            a, _ = self.follow.action(robot.tcp(), self.grasp_yaw, jaw=1.0)
+            self.wait += 1
+            if self.wait >= 1:
+                self.phase = "rise"
+        else:  # rise, then the other drawer
+            tip = robot.tcp()
+            a, done = self.follow.action(
+                np.array([tip[0], tip[1], DrawerExpert.TRAVEL]), self.grasp_yaw, jaw=1.0
+            )
+            if done:
+                self.phase, self.target, self.first = "above", 1 - self.target, False
         return a

@@ -106,7 +106,9 @@ class Task(ABC):
 
     @abstractmethod
     def expert(self, env: ManipulationEnv, style: str, rng: np.random.Generator):
-        """A scripted expert: an object with ``act() -> action`` for ``style`` in EXPERT_STYLES."""
+        """A scripted (privileged) expert: an object with ``act() -> action`` for ``style`` in
+        EXPERT_STYLES. The general tasks also have ``observable_expert(env)``, whose ``act(obs)``
+        decides only from the observation; demonstrations use it by default (docs/tasks.md)."""
 
     def fixed_index(self) -> int:
         """Slot (index into object_names) of the immovable object: privileged, for checks only.

@@ -120,3 +120,60 @@ class Approach:
             a, _ = self.follow.pivot_action(goal, r.target_yaw, jaw)
             return a, False
         return self.follow.action(np.array([tip_xy[0], tip_xy[1], 0.0]), yaw, jaw, pivot_z=self.height)
+
+
+# --- observable experts ---------------------------------------------------------------------------
+# The experts above follow privileged plans (which object is fixed decides where they go first).
+# The observable experts below decide only from what an observation carries: which object is
+# nearest the gripper, and whether the object they act on moved. A policy cloning them is taught
+# choices it can see (docs/tasks.md, "How the experts decide").
+
+MOVED = 0.005  # m: an object whose observed position changed this much since its probe began moved
+TIE = 0.001  # m: objects this close to equally far from the gripper count as tied
+
+
+def object_positions(obs) -> np.ndarray:
+    """(M, 3) observed object positions (the centres the objects' points show), world frame."""
+    return np.asarray(obs.object_poses, dtype=float)[:, :3]
+
+
+def object_yaws(obs) -> np.ndarray:
+    """(M,) observed object yaws (about world z), from the poses' quaternions (x, y, z, w)."""
+    q = np.asarray(obs.object_poses, dtype=float)[:, 3:]
+    x, y, z, w = q.T
+    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def nearest_object(obs) -> int:
+    """Slot of the object nearest the gripper in (x, y): nearest the origin of the observation's
+    gripper-centric frame, as the policy sees it. A tie (within TIE) goes to the smaller world y,
+    then the smaller world x, a rule the policy can see too (the frame keeps world orientation)."""
+    pos = object_positions(obs)
+    gripper = np.asarray(obs.gripper_pose, dtype=float)[:2]
+    dist = np.hypot(*(pos[:, :2] - gripper).T)
+    tied = [i for i in range(len(pos)) if dist[i] <= dist.min() + TIE]
+    return min(tied, key=lambda i: (pos[i, 1], pos[i, 0]))
+
+
+def moved(obs, slot: int, start: np.ndarray) -> bool:
+    """Whether object ``slot`` is observed at least MOVED away from ``start``."""
+    return bool(np.linalg.norm(object_positions(obs)[slot] - start) >= MOVED)
+
+
+def layout_style(env, obs) -> str:
+    """The demonstration style a layout gives the observable expert: ``probe`` where the object
+    nearest the gripper at reset is the immovable one (the expert probes it, sees no motion and
+    switches), ``direct`` where it is the movable one. Reads the hidden fixedness: for choosing
+    seeds of each style (the recorder's choice), never for the expert's decisions."""
+    return "probe" if nearest_object(obs) == env.task.fixed_index() else "direct"
+
+
+def seed_for_style(env, style: str, seeds, limit: int = 1000) -> int:
+    """The first seed from the iterator ``seeds`` whose layout gives ``style`` (``layout_style``
+    after ``env.reset(seed)``); the seeds before it are skipped. Deterministic: the seeds and the
+    layouts they give are. RuntimeError after ``limit`` seeds (about half the layouts give each)."""
+    for _ in range(limit):
+        seed = next(seeds)
+        if layout_style(env, env.reset(seed)) == style:
+            return seed
+    raise RuntimeError(f"no layout of style {style!r} among {limit} seeds")

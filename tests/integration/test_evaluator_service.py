@@ -225,8 +225,8 @@ def test_cadence_first_version_then_every_env_steps_then_the_budget(tmp_path):
         _at(gate, steps)
         assert ev.due() is due, steps  # 1200: the budget, off the cadence
     ev.last_env_steps = 1200
-    for steps, due in ((1200, False), (1449, False), (1450, True), (300, True), (None, True)):
-        _at(gate, steps)  # 300: the learner went back (restart); None: steps unknown -> every version
+    for steps, due in ((1200, False), (1449, False), (1450, True), (300, True), (None, False)):
+        _at(gate, steps)  # 300: the learner went back (restart); None: steps unknown again -> wait for them
         assert ev.due() is due, steps
 
 
@@ -241,6 +241,7 @@ def test_a_restarted_evaluator_keeps_the_cadence_and_improvement_from_its_histor
     assert ev.last_env_steps == 500 and ev.improvement == 250
     assert ev.heartbeat_counters()["improvement_env_steps"] == 250
     assert ev.ctx.metrics.registry.get_sample_value("mea_evaluator_improvement_env_steps") == 250
+    assert not ev.due()  # no gate yet (a resumed run's first seconds): no evaluation at env steps -1
     _at(gate, 600)
     assert not ev.due()
     _at(gate, 750)

@@ -86,11 +86,11 @@ def test_gasv2_learner_trains_publishes_a_latent_policy_and_resumes_its_lineage(
     assert {a.algorithm for a in resumed} == {"gasv2"} and len({a.run_id for a in resumed}) == 1
 
 
-def test_only_the_gasv2_learner_leaves_the_cpu():
+def test_gasv2_presets_observe_dsa_and_train_on_the_configured_device():
     from services.learner.config import LearnerConfig, build_trainer
 
-    with pytest.raises(ValueError, match="only the gasv2 learner"):
-        LearnerConfig(device="cuda")
+    with pytest.raises(ValueError, match="device must be cpu, cuda or cuda:N"):
+        LearnerConfig(device="gpu")  # every learner may leave the CPU (tests/unit/test_learner_device.py)
     with pytest.raises(ValueError, match="starts from a gasv2 preset"):
         LearnerConfig(algorithm="gasv2")  # the SAC paper preset's fields do not fit its windows
     with pytest.raises(ValueError, match="gasv2 learner's only"):

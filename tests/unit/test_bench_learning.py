@@ -1,5 +1,6 @@
-"""`mea bench learning` without training: presets, the `mea run` command of each run (make run's
-recipe), resuming, and the comparison table / JSON built from fake run directories."""
+"""`mea bench learning` without training: presets and protocols, the `mea run` command of each run
+(make run's recipe), resuming, refusals, and the comparison tables / JSON / PNGs built from fake run
+directories (their statistics themselves: test_bench_stats.py)."""
 
 from __future__ import annotations
 
@@ -20,12 +21,14 @@ pytestmark = pytest.mark.unit
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 BUDGET = 20_000
+REPS = 300  # bootstrap resamples: enough for the verdicts below, fast on a shared CPU
 
 
-def test_cpu_small_is_20k_steps_one_seed_20_and_50_eval_episodes_paper_is_40k_four_seeds():
+def test_cpu_small_is_20k_steps_three_seeds_20_and_50_eval_episodes_paper_is_40k_four_seeds():
     s = settings(LearningBenchConfig())
     assert (s.budget, s.seeds, s.learner, s.eval_every, s.eval_episodes, s.final_eval_episodes) == (
-        20_000, 1, None, 1000, 20, 50)  # fmt: skip
+        20_000, 3, None, 1000, 20, 50)  # fmt: skip
+    assert s.seed_list == (0, 1, 2) and s.random_steps is None and s.protocol is None
     p = settings(LearningBenchConfig(preset="paper"))
     assert (p.budget, p.seeds, p.learner, p.eval_every) == (40_000, 4, "paper", 250)
     assert (p.eval_episodes, p.final_eval_episodes) == (20, 50)
@@ -61,18 +64,29 @@ def test_a_cpu_small_run_is_make_runs_recipe_with_only_variant_seed_budget_and_r
         "paper", 40_000, 250, 3, "mea", "all")  # fmt: skip
 
 
-def make_run(out, variant: str, seed: int, curve, wall: float | None = None, episodes_at_budget: int = 50):
+def make_run(
+    out,
+    variant: str,
+    seed: int,
+    curve,
+    wall: float | None = None,
+    episodes_at_budget: int = 50,
+    budget: int = BUDGET,
+    **run_cfg,
+):
+    """A run directory as `mea run` leaves it: config.json and eval/history.jsonl (and the bench's wall file)."""
     run_dir = out / f"block_pull-{variant}-s{seed}"
     run_dir.mkdir(parents=True)
     config.save(
-        RunConfig(variant=variant, seed=seed, env_steps=BUDGET, run_dir=run_dir), run_dir / "config.json"
+        RunConfig(variant=variant, seed=seed, env_steps=budget, run_dir=run_dir, **run_cfg),
+        run_dir / "config.json",
     )
     history = run_dir / "eval" / "history.jsonl"
     append_history(
         history, {"version": 0, "env_steps": -1, "success_rate": 1.0, "episodes": 20}
     )  # unknown steps
     for version, (steps, success) in enumerate(curve, start=1):
-        n = episodes_at_budget if steps >= BUDGET else 20
+        n = episodes_at_budget if steps >= budget else 20
         append_history(
             history, {"version": version, "env_steps": steps, "success_rate": success, "episodes": n}
         )
@@ -99,35 +113,55 @@ def test_the_comparison_from_finished_runs_is_hand_computed_and_nothing_is_train
     # mea: AUC s0 = (.25*10000 + .7*10000)/20000 = .475, s1 = (.1+.7)/2 = .4 (uneven: one segment)
     make_run(out, "mea", 0, [(0, 0.0), (10_000, 0.5), (20_000, 0.9)])
     make_run(out, "mea", 1, [(0, 0.1), (20_000, 0.7)])
-    cfg = LearningBenchConfig(out=out, seeds=2, json=True)
+    cfg = LearningBenchConfig(out=out, seeds=2, json=True, bootstrap_reps=REPS)
     result = run(cfg)
     printed = json.loads(capsys.readouterr().out)  # exactly one JSON object on stdout
     assert printed == json.loads((out / "result-block_pull.json").read_text())
     assert printed["benchmark"] == "learning" and printed["meta"]["budget"] == BUDGET
     assert (printed["meta"]["eval_episodes"], printed["meta"]["final_eval_episodes"]) == (20, 50)
-    assert (out / "curves-block_pull.png").read_bytes().startswith(PNG_MAGIC)
+    assert printed["meta"]["seed list (every arm)"] == [0, 1]
+    assert printed["meta"]["bootstrap"]["reps"] == REPS
+    for png in ("curves-block_pull.png", "profile-block_pull.png"):  # next to the result
+        assert (out / png).read_bytes().startswith(PNG_MAGIC)
 
     rows = {r["variant"]: r for r in result["results"]["comparison"]}
-    assert list(rows) == ["equirsac", "equiobs", "mea"]
+    speed = {r["variant"]: r for r in result["results"]["learning speed"]}
+    assert list(rows) == list(speed) == ["equirsac", "equiobs", "mea"]
     expect = {  # success at budget mean, std; AUC mean, std; improvement mean over seeds, seeds improved
         "equirsac": (0.0, 0.0, 0.025, 0.025, None, 0),
         "equiobs": (0.5, 0.1, 0.25, 0.0, 7500.0, 2),
         "mea": (0.8, 0.1, 0.4375, 0.0375, 5000.0, 2),
     }
     for variant, (s_mean, s_std, a_mean, a_std, improvement, improved) in expect.items():
-        r = rows[variant]
+        r, sp = rows[variant], speed[variant]
         assert r["seeds"] == r["seeds at budget"] == 2
         assert r["success at budget (mean)"] == pytest.approx(s_mean) and r[
             "success at budget (std)"
         ] == pytest.approx(s_std)
-        assert r["AUC (mean)"] == pytest.approx(a_mean) and r["AUC (std)"] == pytest.approx(a_std)
-        assert r["improvement timestep (mean over seeds)"] == (improvement and pytest.approx(improvement))
-        assert r["seeds improved"] == improved
-    assert rows["mea"]["improvement timestep of the mean curve"] == 0  # mean curve .05, .3, .8: > 0 from 0
-    assert rows["equiobs"]["improvement timestep of the mean curve"] == 5000
-    assert rows["equirsac"]["wall (min, all seeds)"] == pytest.approx(8000 / 60)
-    assert rows["equiobs"]["wall (min, all seeds)"] == pytest.approx(4000 / 60)
-    assert rows["mea"]["wall (min, all seeds)"] is None
+        assert r["success at budget (IQM)"] == pytest.approx(s_mean)  # two runs: nothing trimmed
+        lo, hi = r["success at budget (95% CI)"]
+        assert (
+            lo <= s_mean <= hi and lo == pytest.approx(s_mean - s_std) and hi == pytest.approx(s_mean + s_std)
+        )
+        assert sp["AUC (mean)"] == pytest.approx(a_mean) and sp["AUC (std)"] == pytest.approx(a_std)
+        assert sp["AUC (95% CI)"] == pytest.approx([a_mean - a_std, a_mean + a_std])  # 2 runs: min and max
+        assert sp["improvement timestep (mean over seeds)"] == (improvement and pytest.approx(improvement))
+        assert sp["seeds improved"] == improved
+    assert speed["equirsac"]["improvement timestep (95% CI)"] is None
+    assert speed["equiobs"]["improvement timestep (95% CI)"] == [5000, 10_000]
+    assert speed["mea"]["improvement timestep of the mean curve"] == 0  # mean curve .05, .3, .8: > 0 from 0
+    assert speed["equiobs"]["improvement timestep of the mean curve"] == 5000
+    assert speed["equirsac"]["wall (min, all seeds)"] == pytest.approx(8000 / 60)
+    assert speed["equiobs"]["wall (min, all seeds)"] == pytest.approx(4000 / 60)
+    assert speed["mea"]["wall (min, all seeds)"] is None
+
+    # against the first arm: equiobs [.4, .6] and mea [.7, .9] both beat equirsac [0, 0] in every pair;
+    # mea against equirsac is separated, and so is equiobs (its CI [.4, .6] misses [0, 0])
+    against = {r["variant"]: r for r in result["results"]["against the first arm"]}
+    assert list(against) == ["equiobs", "mea"] and {r["against"] for r in against.values()} == {"equirsac"}
+    assert against["mea"]["P(improvement)"] == pytest.approx(1.0)
+    assert against["mea"]["success at budget"].startswith("separated")
+    assert against["equiobs"]["success at budget"].startswith("separated")
 
     per_run = {r["run"]: r for r in result["results"]["runs"]}
     assert len(per_run) == 6 and per_run["block_pull-mea-s1"]["AUC"] == pytest.approx(0.4)
@@ -146,9 +180,25 @@ def test_the_comparison_from_finished_runs_is_hand_computed_and_nothing_is_train
     # the same as tables: every section, then the targets against the public code
     run(dataclasses.replace(cfg, json=False))
     text = capsys.readouterr().out
-    assert text.index("learning: comparison") < text.index("training loop against the public") < text.index(
-        "against the public Equi-RSAC code on a 2-core CPU")  # fmt: skip
-    assert "AUC (mean)" in text
+    assert text.index("learning: comparison") < text.index("learning: against the first arm") < text.index(
+        "training loop against the public") < text.index("against the public Equi-RSAC code on a 2-core CPU")  # fmt: skip
+    assert "AUC (mean)" in text and "[0.4, 0.6]" in text  # intervals print as [lo, hi]
+
+
+def test_arms_within_noise_are_said_to_be_and_the_bootstrap_seed_reproduces_the_result(tmp_path, monkeypatch):
+    monkeypatch.setattr(subprocess, "Popen", _no_training)
+    out = tmp_path / "bench"
+    for seed, (a, b) in enumerate([(0.3, 0.4), (0.5, 0.3), (0.4, 0.6)]):  # paired by seed, overlapping
+        make_run(out, "equiobs", seed, [(0, 0.0), (20_000, a)])
+        make_run(out, "mea", seed, [(0, 0.0), (20_000, b)])
+    cfg = LearningBenchConfig(out=out, variants=("equiobs", "mea"), json=True, bootstrap_reps=REPS)
+    first = run(cfg)["results"]
+    (row,) = first["against the first arm"]
+    assert row["success at budget"].startswith("within noise")
+    assert 0.0 < row["P(improvement)"] < 1.0
+    assert run(cfg)["results"] == first  # same runs, same bootstrap seed: the same intervals
+    one_seed = run(dataclasses.replace(cfg, seeds=1))["results"]["against the first arm"]
+    assert one_seed[0]["success at budget"] == "one seed: no interval to compare"
 
 
 def test_the_success_at_budget_is_the_budget_evaluation_not_a_later_one(tmp_path, monkeypatch):
@@ -158,7 +208,7 @@ def test_the_success_at_budget_is_the_budget_evaluation_not_a_later_one(tmp_path
     append_history(
         run_dir / "eval" / "history.jsonl", {"version": 9, "env_steps": 21_000, "success_rate": 0.1}
     )
-    result = run(LearningBenchConfig(out=out, variants=("mea",), json=True))
+    result = run(LearningBenchConfig(out=out, variants=("mea",), seeds=1, json=True, bootstrap_reps=REPS))
     (row,) = result["results"]["comparison"]
     assert row["success at budget (mean)"] == pytest.approx(0.6)
 
@@ -179,7 +229,7 @@ def test_interrupted_runs_are_resumed_new_ones_started_and_their_wall_time_added
     monkeypatch.setattr(subprocess, "Popen", FakeProc)
     out = tmp_path / "bench"
     unfinished = make_run(out, "equiobs", 0, [(0, 0.0), (10_000, 0.2)], wall=100.0)  # stopped half way
-    run(LearningBenchConfig(out=out, variants=("equiobs", "mea"), json=True))
+    run(LearningBenchConfig(out=out, variants=("equiobs", "mea"), seeds=1, json=True, bootstrap_reps=REPS))
     resume_cmd, new_cmd = FakeProc.commands
     assert resume_cmd[resume_cmd.index("run") + 1 :][:2] == ["--resume", str(unfinished)]
     assert "--variant" not in resume_cmd  # the saved settings, not new ones
@@ -199,10 +249,132 @@ def test_a_run_directory_made_with_another_budget_is_refused_before_training(tmp
         run(LearningBenchConfig(out=out, variants=("equirsac", "mea")))
 
 
+@pytest.mark.parametrize(
+    ("made_with", "named"),
+    [
+        ({"demos": 15}, "demos"),
+        ({"random_steps": 1_000}, "random_steps"),
+        ({"learner_preset": "paper"}, "learner_preset"),
+    ],
+)
+def test_a_run_directory_made_with_other_data_or_learner_is_refused_and_nothing_is_written(
+    tmp_path, monkeypatch, made_with, named
+):
+    monkeypatch.setattr(subprocess, "Popen", _no_training)
+    out = tmp_path / "bench"
+    old = make_run(out, "mea", 0, [(0, 0.0), (20_000, 0.5)], **made_with)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    with pytest.raises(SystemExit, match=f"{named}.*delete it"):
+        run(LearningBenchConfig(out=out, variants=("equiobs", "mea")))
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+    # asked for with the settings it was made with, it is reused as it is
+    same = LearningBenchConfig(
+        out=out, variants=("mea",), seeds=1, json=True, bootstrap_reps=REPS, env_steps=BUDGET,
+        demos=made_with.get("demos", 0), preset="paper" if named == "learner_preset" else "cpu-small",
+        extra=("--random-steps", "1000") if named == "random_steps" else (),
+    )  # fmt: skip
+    (row,) = run(same)["results"]["runs"]
+    assert row["run"] == old.name and row["success at budget"] == pytest.approx(0.5)
+
+
+def test_public80_trains_equirsac_and_equiobs_on_80_demos_and_1000_random_steps_two_seeds(tmp_path):
+    cfg = LearningBenchConfig(out=tmp_path, protocol="public80")
+    s = settings(cfg)
+    assert (s.variants, s.budget, s.seeds, s.demos, s.random_steps) == (
+        ("equirsac", "equiobs"),
+        40_000,
+        2,
+        80,
+        1_000,
+    )
+    assert learning.run_dir_of(cfg, "equiobs", 1) == tmp_path / "public80" / "block_pull-equiobs-s1"
+    parsed = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, "equirsac", 1, s), "mea run", "")
+    expected = dataclasses.replace(
+        RunConfig(), variant="equirsac", seed=1, env_steps=40_000, demos=80, random_steps=1_000,
+        learner_preset="cpu-small", run_dir=tmp_path / "public80" / "block_pull-equirsac-s1",
+    )  # fmt: skip
+    assert parsed == expected
+    p15 = settings(LearningBenchConfig(out=tmp_path, protocol="public15"))
+    assert (p15.variants, p15.budget, p15.seeds, p15.demos, p15.random_steps, p15.eval_every) == (
+        ("equiobs", "mea"), 25_000, 3, 15, None, 1_000)  # fmt: skip
+    assert settings(LearningBenchConfig(protocol="public15", variants=("equiobs",), seeds=5)).seeds == 5
+
+
+@pytest.mark.parametrize(
+    ("options", "says"),
+    [
+        ({"protocol": "public99"}, "--protocol 'public99'.*public15"),
+        ({"protocol": "public80", "task": "drawer_open"}, "block_pull protocol"),
+        ({"protocol": "public15", "preset": "paper"}, "leave --preset at cpu-small"),
+        ({"seeds": -1}, "--seeds must be >= 0"),
+        ({"bootstrap_reps": 0}, "--bootstrap-reps must be >= 1"),
+    ],
+)
+def test_bad_options_are_refused_in_one_line_before_anything_is_written(tmp_path, options, says):
+    out = tmp_path / "bench"
+    with pytest.raises(SystemExit, match=says) as exc:
+        run(LearningBenchConfig(out=out, **options))
+    assert str(exc.value).startswith("mea bench learning: ") and "\n" not in str(exc.value)
+    assert not out.exists()
+
+
+def test_public15_prints_ours_beside_the_public_reproduction_at_each_5k(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(subprocess, "Popen", _no_training)
+    out = tmp_path / "bench" / "public15"
+    curves = {  # equiobs at 5K..25K per seed; the reference: .00 .27 .37 .53 .77
+        0: [0.0, 0.3, 0.3, 0.6, 0.8],
+        1: [0.0, 0.2, 0.4, 0.5, 0.8],
+        2: [0.0, 0.4, 0.2, 0.6, 0.9],
+    }
+    for seed, values in curves.items():
+        points = [(0, 0.0), *((5_000 * (i + 1) + 3, v) for i, v in enumerate(values))]  # 5,003, 10,003, ...
+        make_run(out, "equiobs", seed, points, budget=25_000, demos=15)
+        make_run(out, "mea", seed, points[:3], budget=25_000, demos=15)  # stopped at 10K: no later points
+    monkeypatch.setattr(
+        learning, "train", lambda cfg, variant, seed, s: learning.run_dir_of(cfg, variant, seed)
+    )
+    result = run(
+        LearningBenchConfig(out=tmp_path / "bench", protocol="public15", json=True, bootstrap_reps=REPS)
+    )
+    assert json.loads(capsys.readouterr().out)["meta"]["reference"].startswith("public reproduction")
+    rows = {(r["variant"], r["env steps"]): r for r in result["results"]["against the public reference"]}
+    assert [k[1] for k in rows if k[0] == "equiobs"] == [5_000, 10_000, 15_000, 20_000, 25_000]
+    eq = {k[1]: r for k, r in rows.items() if k[0] == "equiobs"}
+    assert [eq[s]["reference"] for s in sorted(eq)] == [0.0, 0.27, 0.37, 0.53, 0.77]
+    assert [eq[s]["ours (mean)"] for s in sorted(eq)] == pytest.approx([0.0, 0.3, 0.3, 17 / 30, 2.5 / 3])
+    assert [eq[s]["verdict"] for s in sorted(eq)] == [
+        "at/above", "at/above", "below (reference inside the CI)", "at/above", "at/above"]  # fmt: skip
+    lo, hi = eq[15_000]["ours (95% CI)"]
+    assert lo <= 0.3 <= hi and hi >= 0.37
+    mea = {k[1]: r for k, r in rows.items() if k[0] == "mea"}
+    assert mea[10_000]["reference"] == 0.33 and mea[10_000]["verdict"] == "below (reference inside the CI)"
+    assert mea[15_000]["verdict"] == "not reached" and mea[15_000]["seeds"] == 0
+    assert (out / "result-block_pull.json").exists() and (out / "curves-block_pull.png").exists()
+    far_below = run(LearningBenchConfig(out=tmp_path / "bench", protocol="public15", variants=("equiobs",),
+                                        seeds=1, json=True, bootstrap_reps=REPS))  # fmt: skip
+    one = {r["env steps"]: r["verdict"] for r in far_below["results"]["against the public reference"]}
+    assert one[15_000] == "below"  # one seed at .3: its interval is [.3, .3]
+
+
+def test_extra_mea_run_arguments_reach_every_new_run(tmp_path, monkeypatch):
+    FakeProc.commands = []
+    monkeypatch.setattr(subprocess, "Popen", FakeProc)
+    cfg = LearningBenchConfig(out=tmp_path, variants=("equirsac", "equiobs"), seeds=2, json=True,
+                              bootstrap_reps=REPS, extra=("--actors", "2"))  # fmt: skip
+    run(cfg)
+    assert len(FakeProc.commands) == 4
+    seeds = {}
+    for cmd in FakeProc.commands:
+        args = cmd[cmd.index("run") + 1 :]
+        assert args[args.index("--actors", args.index("--run-dir")) + 1] == "2"  # after the bench's own
+        seeds.setdefault(args[args.index("--variant") + 1], []).append(int(args[args.index("--seed") + 1]))
+    assert seeds == {"equirsac": [0, 1], "equiobs": [0, 1]}  # paired by seed
+
+
 def test_surgical_grasp_any_compares_gasv2_with_mea_gasv2_on_ten_demos(tmp_path):
     cfg = LearningBenchConfig(out=tmp_path, task="surgical_grasp_any")
     s = settings(cfg)
-    assert s.variants == ("gasv2", "mea-gasv2") and s.demos == 10 and s.seeds == 1
+    assert s.variants == ("gasv2", "mea-gasv2") and s.demos == 10 and s.seeds == 3
     parsed = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, "mea-gasv2", 0, s), "mea run", "")
     assert (parsed.task, parsed.variant, parsed.demos, parsed.env_steps) == (
         "surgical_grasp_any",

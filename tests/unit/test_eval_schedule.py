@@ -33,7 +33,7 @@ def test_the_first_version_is_due_once_steps_are_known_or_the_gate_wait_is_over(
         (5000, 1000, True),
         (1000, 1000, False),
         (300, 1000, True),  # the learner went back (restarted): start afresh
-        (-1, 1000, True),  # steps unknown now: every new version
+        (-1, 1000, False),  # steps known before, not yet now (a resume): wait for the gate
         (1100, -1, True),  # the last evaluation had no steps: every new version
     ],
 )

@@ -406,8 +406,25 @@ def corrupt_second_episode(tmp_path: Path, make_episode) -> tuple[Path, list[Epi
     return path, eps
 
 
+def bad_second_episode(tmp_path: Path, make_episode) -> tuple[Path, list[Episode]]:
+    """A whole file (chunk CRCs match) whose second message does not decode: an invalid episode id
+    written by another program (a damaged file is caught by its CRC before decoding)."""
+    eps = [make_episode(seed=i) for i in range(3)]
+    path = tmp_path / "run.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f, chunk_size=1)
+        w.start(profile=PROFILE, library="other")
+        sid = w.register_schema("Episode", SCHEMA_ENCODING, json_schema_text(Episode).encode())
+        cid = w.register_channel("/mea/Episode", MESSAGE_ENCODING, sid)
+        for i, ep in enumerate(eps):
+            data = ep.encode().replace(b"actor-0-1-0", b"actor-0-1!0")  # same length, bad pattern
+            w.add_message(cid, i, data, i, sequence=i)
+        w.finish()
+    return path, eps
+
+
 def test_corrupted_record_raises_protocol_error(tmp_path, make_episode):
-    path, _ = corrupt_second_episode(tmp_path, make_episode)
+    path, _ = bad_second_episode(tmp_path, make_episode)
     it = read_messages(path)
     assert next(it)[1].episode_id == "actor-0-0-0"
     with pytest.raises(ProtocolError) as err:
@@ -417,7 +434,7 @@ def test_corrupted_record_raises_protocol_error(tmp_path, make_episode):
 
 
 def test_corrupted_record_skipped_and_counted(tmp_path, make_episode, caplog):
-    path, eps = corrupt_second_episode(tmp_path, make_episode)
+    path, eps = bad_second_episode(tmp_path, make_episode)
     stats = ReadStats()
     got = [m for _, m in read_messages(path, on_error="skip", stats=stats)]
     assert [m.episode_id for m in got] == ["actor-0-0-0", "actor-0-2-0"]

@@ -115,7 +115,7 @@ def test_resume_reuses_the_saved_settings_with_new_seeds_and_no_demos(tmp_path):
     assert learner_cfg(cfg, tmp_path).resume and not learner_cfg(first, tmp_path).resume
     config.save(cfg, tmp_path / "config.json")
     assert resumed_config(dataclasses.replace(cli)).resumes == 2
-    with pytest.raises(SystemExit, match="config.json"):
+    with pytest.raises(ValueError, match="no such run directory"):
         resumed_config(RunConfig(resume=tmp_path / "missing"))
 
 
@@ -243,7 +243,8 @@ def test_surgical_runs_take_the_gasv2_variants_and_learner(tmp_path):
     by = {s.service: s.config for s in specs}
     learner, augmenter, actor = by["learner"], by["augmenter"], by["actor"]
     assert learner == dataclasses.replace(LEARNER_PRESETS["gasv2-cpu-small"], threads=1, max_env_steps=run.env_steps,
-                                          seed=0, run_dir=tmp_path / "learner", resume=False, service=learner.service)  # fmt: skip
+                                          seed=0, run_dir=tmp_path / "learner", tensorboard_dir=tmp_path / "tb", resume=False,
+                                          service=learner.service)  # fmt: skip
     assert (
         augmenter.augment.mea_on == "successes" and actor.demos == 10 and actor.task == "surgical_grasp_any"
     )

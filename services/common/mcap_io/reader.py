@@ -10,13 +10,12 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import IO, Literal
 
-from mcap.data_stream import ReadDataStream
-from mcap.exceptions import InvalidMagic
+from mcap.exceptions import EndOfFile, InvalidMagic, RecordLengthLimitExceeded
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, Header, Metadata, Schema
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Metadata, Schema
 from mcap.records import Message as McapMessage
-from mcap.stream_reader import breakup_chunk
+from mcap.stream_reader import StreamReader, breakup_chunk
 
 import proto  # noqa: F401 - registers every message type for decoding
 from proto.codec import Message, decode
@@ -25,13 +24,33 @@ from services.common.mcap_io.layout import CONFIG_METADATA_PREFIX, MAGIC, MESSAG
 
 log = logging.getLogger(__name__)
 
-_RECORD_HEAD = struct.Struct("<BQ")  # opcode, body length
 _FOOTER_RECORD_SIZE = 1 + 8 + 8 + 8 + 4
 _MAX_ERRORS_KEPT = 100
 MAX_CHUNK_BYTES = 1 << 30
 """Largest uncompressed chunk a reader accepts (the recorder's are about ``chunk_size`` + one message)."""
 
 OnError = Literal["raise", "skip"]
+
+
+@dataclass(frozen=True)
+class Damage:
+    """Where a recording stops being readable: every whole record before ``offset`` was read."""
+
+    path: str
+    offset: int
+    """Byte offset of the first record that is cut off or corrupt (the end of the last whole one)."""
+    size: int
+    """The file's size in bytes."""
+    recovered: int
+    """Messages read from the file before ``offset``."""
+    problem: str
+
+    def describe(self) -> str:
+        lost = self.size - self.offset
+        return (
+            f"damaged recording {self.path}: {self.problem}; {self.recovered} messages recovered before "
+            f"byte {self.offset}, {lost} bytes after it unread"
+        )
 
 
 @dataclass
@@ -51,6 +70,8 @@ class ReadStats:
     was complete but the summary, footer or end magic is missing or damaged (crashed or damaged file)."""
     errors: list[str] = field(default_factory=list)
     """The first problems met, as text."""
+    damage: list[Damage] = field(default_factory=list)
+    """Each damaged file read: where its readable part ends and how many messages it held up to there."""
 
     def note(self, problem: str) -> None:
         if len(self.errors) < _MAX_ERRORS_KEPT:
@@ -65,74 +86,95 @@ def _has_footer(f: IO[bytes], size: int) -> bool:
     return tail[0] == Opcode.FOOTER and tail.endswith(MAGIC)
 
 
-def _parse_record(opcode: int, body: bytes) -> list:
-    """The records in one complete top-level record (a chunk's, CRC-checked), or raise."""
-    stream = ReadDataStream(io.BytesIO(body))
-    if opcode == Opcode.CHUNK:
-        chunk = Chunk.read(stream)
-        # Chunk.read returns short data rather than failing: compare with the declared length
-        (declared,) = struct.unpack_from("<Q", body, 32 + len(chunk.compression.encode()))
-        if declared != len(chunk.data) or stream.count != len(body):
-            raise ValueError(f"chunk data is {len(chunk.data)} bytes, declared {declared}")
-        if not chunk.compression and len(chunk.data) != chunk.uncompressed_size:
-            raise ValueError("uncompressed chunk size mismatch")
-        if chunk.uncompressed_size > MAX_CHUNK_BYTES:
-            raise ValueError(f"chunk of {chunk.uncompressed_size} bytes over cap {MAX_CHUNK_BYTES}")
-        return breakup_chunk(chunk, validate_crc=True)
-    if opcode == Opcode.MESSAGE:
-        return [McapMessage.read(stream, len(body))]
-    readers = {
-        Opcode.HEADER: Header.read,
-        Opcode.SCHEMA: Schema.read,
-        Opcode.CHANNEL: Channel.read,
-        Opcode.METADATA: Metadata.read,
-    }
-    reader = readers.get(opcode)
-    return [] if reader is None else [reader(stream)]
+def _summary_readable(f: IO[bytes], size: int) -> bool:
+    if not _has_footer(f, size):
+        return False
+    f.seek(0)
+    try:
+        make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 - any failure means a damaged summary
+        return False
+    return True
+
+
+class _Bounded:
+    """The file as the stream reader sees it: a read never asks for more than the file holds, so a
+    damaged length field cannot make it allocate more than the file's size."""
+
+    def __init__(self, f: IO[bytes], size: int) -> None:
+        self.f, self.size = f, size
+
+    def read(self, n: int = -1) -> bytes:
+        left = max(0, self.size - self.f.tell())
+        return self.f.read(left if n < 0 else min(n, left))
+
+
+def _chunk_records(chunk: Chunk) -> list:
+    """The records of one chunk, CRC-checked, or raise."""
+    if chunk.uncompressed_size > MAX_CHUNK_BYTES:
+        raise ValueError(f"chunk of {chunk.uncompressed_size} bytes over cap {MAX_CHUNK_BYTES}")
+    if not chunk.compression and len(chunk.data) != chunk.uncompressed_size:
+        raise ValueError("uncompressed chunk size mismatch")
+    return breakup_chunk(chunk, validate_crc=True)
+
+
+def _damaged(f: IO[bytes], stats: ReadStats, offset: int, size: int, recovered: int, problem: str) -> None:
+    name = str(getattr(f, "name", "<stream>"))
+    damage = Damage(name, offset, size, recovered, problem)
+    stats.truncated = True
+    stats.note(problem)
+    stats.damage.append(damage)
+    log.warning(damage.describe(), extra={"path": name, "offset": offset, "recovered": recovered})
 
 
 def scan_records(f: IO[bytes], size: int, stats: ReadStats) -> Iterator:
-    """Records of the data section in file order, stopping at the first incomplete or corrupt one.
+    """Records of the data section in file order (mcap's non-seeking ``StreamReader``), stopping at
+    the first incomplete or corrupt one, which is logged and recorded in ``stats.damage``.
 
-    Each top-level record is only parsed once all of its bytes are known to be in the file, and a
-    chunk only once its CRC matched, so a truncated tail never yields a partial message.
+    The stream reader yields a record only once all of its bytes were read, and a chunk's records are
+    used only once its CRC matched, so a truncated tail never yields a partial message.
     """
     f.seek(0)
-    if f.read(len(MAGIC)) != MAGIC:
-        raise InvalidMagic(f"{getattr(f, 'name', '<stream>')}: not an MCAP file")
-    pos = len(MAGIC)
+    head = f.read(len(MAGIC))
+    if head != MAGIC:
+        if len(head) == len(MAGIC) or not MAGIC.startswith(head):
+            raise InvalidMagic(f"{getattr(f, 'name', '<stream>')}: not an MCAP file")
+        _damaged(f, stats, 0, size, 0, f"file ends at byte {size}, inside the leading magic")
+        return
+    f.seek(0)
+    records = StreamReader(_Bounded(f, size), emit_chunks=True, record_size_limit=size).records  # type: ignore[arg-type]
+    pos, messages = len(MAGIC), 0
     while True:
-        head = f.read(_RECORD_HEAD.size)
-        if not head:
-            stats.truncated = True
-            stats.note(f"file ends at byte {pos} without a footer")
-            return
-        if len(head) < _RECORD_HEAD.size:
-            stats.truncated = True
-            stats.note(f"incomplete record header at byte {pos}")
-            return
-        opcode, length = _RECORD_HEAD.unpack(head)
-        if opcode in (Opcode.DATA_END, Opcode.FOOTER):
-            # the data section is complete; the summary would repeat what we have seen. We scan only
-            # when the footer or summary is missing or unreadable: the file's tail is damaged.
-            stats.truncated = True
-            stats.note(
-                f"data section complete up to byte {pos}, but the summary, footer or end magic is missing or damaged"
-            )
-            return
-        if length > size - pos - _RECORD_HEAD.size:
-            stats.truncated = True
-            stats.note(f"record (opcode {opcode}) at byte {pos} needs {length} bytes, file ends first")
-            return
-        body = f.read(length)
         try:
-            records = _parse_record(opcode, body)
-        except Exception as exc:  # noqa: BLE001 - any failure means a damaged record
-            stats.truncated = True
-            stats.note(f"corrupt record (opcode {opcode}) at byte {pos}: {type(exc).__name__}: {exc}"[:300])
+            record = next(records)
+            if isinstance(record, (DataEnd, Footer)):
+                # the data section is complete; the summary would repeat what we have seen. A reader
+                # scans when the footer or summary is missing or unreadable (the tail is damaged);
+                # recover() scans whole files too.
+                if not _summary_readable(f, size):
+                    problem = (
+                        "data section complete, but the summary, footer or end magic is missing or damaged"
+                    )
+                    _damaged(f, stats, pos, size, messages, problem)
+                return
+            found = _chunk_records(record) if isinstance(record, Chunk) else [record]
+        except (EndOfFile, RecordLengthLimitExceeded, struct.error):
+            problem = (
+                f"file ends at byte {size} without a footer"
+                if pos == size
+                else f"record at byte {pos} is cut off (the file ends at byte {size})"
+            )
+            _damaged(f, stats, pos, size, messages, problem)
             return
-        yield from records
-        pos += _RECORD_HEAD.size + length
+        except Exception as exc:  # noqa: BLE001 - any other failure means a damaged record
+            problem = f"corrupt record at byte {pos}: {type(exc).__name__}: {exc}"[:300]
+            _damaged(f, stats, pos, size, messages, problem)
+            return
+        for rec in found:
+            if isinstance(rec, (Header, Schema, Channel, Metadata, McapMessage)):
+                messages += isinstance(rec, McapMessage)
+                yield rec
+        pos = f.tell()
 
 
 def _scanned_messages(
@@ -160,7 +202,7 @@ def _raw_messages(
     if _has_footer(f, size):
         f.seek(0)
         try:
-            reader = make_reader(f)
+            reader = make_reader(f, validate_crcs=True)  # a damaged chunk is an error, not altered data
             summary = reader.get_summary()
         except Exception as exc:  # noqa: BLE001 - a damaged summary: fall back to scanning
             log.warning("MCAP summary of %s unreadable (%s); scanning linearly", getattr(f, "name", "?"), exc)
@@ -182,7 +224,21 @@ def _raw_messages(
             if ch.schema_id in summary.schemas and summary.schemas[ch.schema_id].name in types
         ]
         topics += [ch.topic for ch in summary.channels.values() if ch.schema_id not in summary.schemas]
-    yield from reader.iter_messages(topics=topics, log_time_order=False)
+    yielded = 0
+    try:
+        for item in reader.iter_messages(topics=topics, log_time_order=False):  # file order
+            yield item
+            yielded += 1
+    except Exception as exc:  # noqa: BLE001 - a damaged chunk in a finished file
+        # scan again from the start: it stops at the damaged record and says where; the messages the
+        # index already gave (the first ``yielded`` on ``topics``, in the same order) are not repeated
+        stats.indexed = False
+        stats.note(f"indexed read failed ({type(exc).__name__}: {exc}); scanned instead"[:300])
+        for schema, channel, rec in _scanned_messages(f, size, stats):
+            if yielded and (topics is None or channel.topic in topics):
+                yielded -= 1
+                continue
+            yield schema, channel, rec
 
 
 def read_messages(
@@ -199,11 +255,21 @@ def read_messages(
     from its channel's schema) raises :class:`ProtocolError` naming the field (``on_error="raise"``)
     or is skipped, logged and counted in ``stats.skipped`` (``on_error="skip"``). A file without a
     valid footer (crashed recording, ``.tmp``) is scanned up to its last complete chunk, setting
-    ``stats.truncated``; damage to the MCAP container itself ends the scan the same way.
+    ``stats.truncated``; damage to the MCAP container itself ends the scan the same way. Either is
+    logged as a warning naming the file, the byte offset and the messages recovered, and recorded
+    in ``stats.damage``.
     """
     if on_error not in ("raise", "skip"):
         raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
     stats = stats if stats is not None else ReadStats()
+    for channel, _, msg in decoded_records(path, types, limits, on_error, stats):
+        yield channel.topic, msg
+
+
+def decoded_records(
+    path: PathLike, types: set[str] | None, limits: Limits, on_error: OnError, stats: ReadStats
+) -> Iterator[tuple[Channel, McapMessage, Message]]:
+    """:func:`read_messages` with each message's channel and MCAP record (times, sequence)."""
     with open(path, "rb") as f:
         for schema, channel, rec in _raw_messages(f, types, stats):
             if channel.message_encoding != MESSAGE_ENCODING:
@@ -227,7 +293,7 @@ def read_messages(
             if types is not None and msg.TYPE not in types:
                 continue
             stats.messages += 1
-            yield channel.topic, msg
+            yield channel, rec, msg
 
 
 def read_metadata(path: PathLike) -> dict[str, dict[str, str]]:

@@ -66,9 +66,18 @@ def read_recording(
 ) -> Iterator[tuple[str, Message]]:
     """``(topic, message)`` of every segment in ``directory`` (:func:`recording_segments`), segment
     after segment, each in file order (see :func:`read_messages`; ``stats`` adds up over the
-    segments and is ``truncated`` if any segment is)."""
+    segments and is ``truncated`` if any segment is, with each damaged one in ``stats.damage``).
+    ``directory`` may also be one recording file, which is read alone; a path that does not exist
+    reads as empty, with a warning."""
     stats = stats if stats is not None else ReadStats()
-    for path in recording_segments(directory, prefix, unfinished=unfinished):
+    d = Path(directory)
+    if d.is_file():  # one file, e.g. a segment or `mea demos` output: not silently nothing
+        paths = [d]
+    else:
+        if not d.exists():
+            log.warning("no recording at %s: the path does not exist", d, extra={"path": str(d)})
+        paths = recording_segments(d, prefix, unfinished=unfinished)
+    for path in paths:
         yield from read_messages(path, types=types, limits=limits, on_error=on_error, stats=stats)
 
 

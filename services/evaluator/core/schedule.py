@@ -3,8 +3,9 @@
 Cadence, in the learner's training env steps (the ``inserted_steps`` of its latest ``ReplayGate``):
 the first version is evaluated as soon as it exists (after waiting up to ``first_gate_wait`` s for a
 gate, so it gets its env steps); after that, once the steps have advanced by ``every_env_steps``
-since the last evaluation. With no gate (steps unknown, -1) every new version is due; if the steps
-go back (a learner restarted in the run dir), the next version is due at once. With a budget
+since the last evaluation. Without gates (steps unknown, -1, at the last evaluation) every new version
+is due; an evaluator whose history has steps (restarted, or a resumed run) waits for the learner's
+gate instead, so no evaluation is recorded at -1 then; if the steps go back (a learner restarted in the run dir), the next version is due at once. With a budget
 ``final_env_steps`` B, the first version pulled once the steps reach B is due off the cadence too,
 so a run always ends with an evaluation at its budget. The last evaluation's steps come from the
 eval history when there is one, so a restarted evaluator keeps the cadence.
@@ -52,8 +53,10 @@ class Schedule:
         the evaluator started."""
         if last_env_steps is None:  # nothing evaluated yet: as soon as a version exists
             return env_steps >= 0 or waited >= self.first_gate_wait
-        if env_steps < 0 or last_env_steps < 0:  # steps unknown: every new version
+        if last_env_steps < 0:  # evaluations without steps (no learner gate): every new version
             return True
+        if env_steps < 0:  # known before, not yet now (a restart or --resume): wait for the gate, never -1
+            return False
         if env_steps < last_env_steps:  # the learner went back (restarted): start the cadence afresh
             return True
         if 0 < self.final_env_steps <= env_steps and last_env_steps < self.final_env_steps:

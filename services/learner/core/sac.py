@@ -29,7 +29,9 @@ to the actor loss (TD3+BC-style cloning of the demonstrations and their augmente
 the encoder once with gradients and once without (target critic). The SAC actor loss sees the
 embedding detached; the BC term, when on, trains the shared encoder together with the critic loss.
 
-``RecurrentSAC`` wires the losses into one update (critic, actor, alpha, soft target update).
+``RecurrentSAC`` wires the losses into one update (critic, actor, alpha, soft target update) on
+one torch device; ``update`` returns its statistics as floats, ``update_tensors`` leaves them on
+the device (reading one is a host synchronisation, which a GPU learner does every N updates).
 """
 
 from __future__ import annotations
@@ -92,6 +94,11 @@ class SacSettings:
     share_encoder: bool = False
     """The actor reads the critic's image encoder on detached features (SAC-AE / DrQ): one encoder
     pass with gradients per update instead of two; the actor's loss never moves the encoder."""
+    bc_filter: bool = False
+    """Clone a demonstration action only where the target critic rates it above the policy's own
+    mean action (Q filter, Nair et al. 2018): where the critic knows better, RL overrules the clone."""
+    bc_decay_updates: int = 0
+    """Decay bc_weight linearly to 0 over this many updates (0: constant)."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.gamma <= 1.0:
@@ -104,6 +111,14 @@ class SacSettings:
             raise ValueError(f"bc_weight must be >= 0, got {self.bc_weight}")
         if self.n_step < 1:
             raise ValueError(f"n_step must be >= 1, got {self.n_step}")
+        if self.bc_decay_updates < 0:
+            raise ValueError(f"bc_decay_updates must be >= 0, got {self.bc_decay_updates}")
+
+    def bc_weight_at(self, updates: int) -> float:
+        """The BC weight after ``updates`` updates (``bc_decay_updates``' linear decay)."""
+        if self.bc_decay_updates == 0:
+            return self.bc_weight
+        return self.bc_weight * max(0.0, 1.0 - updates / self.bc_decay_updates)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -192,11 +207,11 @@ def returns_to_go(rewards: Tensor, mask: Tensor, gamma: float) -> Tensor:
 
 def critic_targets(
     critic_target: nn.Module, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float, gamma: float,
-    n_step: int = 1,
+    n_step: int = 1, feats: Tensor | None = None,
 ) -> Tensor:  # fmt: skip
-    """y_t (B, L), without gradient."""
+    """y_t (B, L), without gradient. ``feats``: the target critic's features of the batch, if computed."""
     with torch.no_grad():
-        feats = critic_target.features_of(batch)
+        feats = critic_target.features_of(batch) if feats is None else feats
         q1, q2 = critic_target.q(feats[:, 1:], policy.actions[:, 1:].detach())
         soft_v = torch.min(q1, q2) - alpha * policy.log_probs[:, 1:].detach()
         return n_step_targets(batch.rewards, batch.terminated, batch.mask, soft_v, gamma, n_step)
@@ -228,14 +243,48 @@ def actor_loss(
     return masked_mean(alpha * policy.log_probs[:, :-1] - torch.min(q1, q2), batch.mask)
 
 
-def bc_loss(mean: Tensor, batch: Batch) -> Tensor:
+def bc_loss(mean: Tensor, batch: Batch, keep: Tensor | None = None) -> Tensor:
     """Squared error between tanh(mean) ((B, L+1, 5), the policy's pre-tanh mean) and the recorded
     action, summed over action dims, averaged over the demonstration transitions of the batch (0 when
-    it holds none)."""
+    it holds none). ``keep`` (B, L): 1 where a demonstration transition is cloned (``bc_filter``);
+    the average stays over all of them, so a filtered-out transition weighs 0, not more on the rest."""
     if batch.demo is None:
         return mean.new_zeros(())
     err = (torch.tanh(mean[:, :-1]) - batch.actions).pow(2).sum(-1)
-    return masked_mean(err, batch.mask * batch.demo[:, None])
+    demo = batch.mask * batch.demo[:, None]
+    kept = err if keep is None else err * keep
+    return (kept * demo).sum() / demo.sum().clamp_min(1.0)
+
+
+@dataclass(frozen=True)
+class DemoCritique:
+    """What the critic says on the batch's demonstration transitions (no gradient).
+
+    ``keep`` is the Q filter: 1 where min Q(h, a_demo) > min Q(h, tanh(mean)). ``rank_gap`` is the
+    mean of Q(h, a_demo) - Q(h, g a_demo), g a quarter turn of (dx, dy): how well the critic tells
+    the demonstrated move from the same move turned away (0: it cannot rank them)."""
+
+    keep: Tensor  # (B, L)
+    accept: Tensor  # () share of demonstration transitions kept
+    rank_gap: Tensor  # ()
+    pi_gap: Tensor  # () mean Q(h, a_demo) - Q(h, tanh(mean))
+
+
+def critique_demos(critic: nn.Module, feats: Tensor, batch: Batch, mean: Tensor) -> DemoCritique | None:
+    """``DemoCritique`` of the batch from critic features ``feats`` (B, L+1, F); None without demos."""
+    if batch.demo is None:
+        return None
+    demo = batch.mask * batch.demo[:, None]
+    with torch.no_grad():
+        f = feats[:, :-1].detach()
+        q_demo = torch.min(*critic.q(f, batch.actions))
+        q_pi = torch.min(*critic.q(f, torch.tanh(mean[:, :-1].detach())))
+        a = batch.actions
+        turned = torch.stack([a[..., 0], -a[..., 2], a[..., 1], a[..., 3], a[..., 4]], -1)
+        q_turned = torch.min(*critic.q(f, turned))
+        keep = (q_demo > q_pi).to(q_demo.dtype)
+        return DemoCritique(keep, masked_mean(keep, demo), masked_mean(q_demo - q_turned, demo),
+                            masked_mean(q_demo - q_pi, demo))  # fmt: skip
 
 
 def alpha_loss(log_alpha: Tensor, log_probs: Tensor, mask: Tensor, target_entropy: float) -> Tensor:
@@ -254,16 +303,29 @@ def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
                 t.copy_(s)
 
 
-def _step(
-    opt: torch.optim.Optimizer, loss: Tensor, params: list[Tensor], extra: tuple[Tensor | None, ...] = ()
-) -> None:
-    """Gradients of ``loss`` for ``params`` only (others untouched), plus ``extra`` gradients of the
-    same parameters computed earlier, then one optimiser step."""
-    grads = torch.autograd.grad(loss, params, allow_unused=True)
-    for i, (p, g) in enumerate(zip(params, grads, strict=True)):
-        e = extra[i] if extra else None
-        p.grad = e if g is None else (g if e is None else g + e)
+Grads = tuple[Tensor | None, ...]
+
+
+def _grads(loss: Tensor, params: list[Tensor], retain: bool = False) -> Grads:
+    return torch.autograd.grad(loss, params, allow_unused=True, retain_graph=retain)
+
+
+def _norm(grads: Grads) -> Tensor:
+    norms = [g.norm() for g in grads if g is not None]
+    return torch.linalg.vector_norm(torch.stack(norms)) if norms else torch.zeros(())
+
+
+def _apply(opt: torch.optim.Optimizer, params: list[Tensor], *terms: Grads) -> None:
+    """Sum each parameter's gradient over ``terms`` (gradients of ``params`` only, others untouched),
+    then one optimiser step."""
+    for i, p in enumerate(params):
+        parts = [t[i] for t in terms if t and t[i] is not None]
+        p.grad = None if not parts else parts[0] if len(parts) == 1 else torch.stack(parts).sum(0)
     opt.step()
+
+
+def _step(opt: torch.optim.Optimizer, loss: Tensor, params: list[Tensor]) -> None:
+    _apply(opt, params, _grads(loss, params))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -272,13 +334,17 @@ def _step(
 
 
 class RecurrentSAC:
-    """Actor, twin critic with a soft-updated target copy, entropy temperature, their optimisers."""
+    """Actor, twin critic with a soft-updated target copy, entropy temperature, their optimisers, all
+    on ``device`` (the networks are moved there; batches must be there too)."""
 
-    def __init__(self, actor: nn.Module, critic: nn.Module, settings: SacSettings) -> None:
+    def __init__(
+        self, actor: nn.Module, critic: nn.Module, settings: SacSettings, device: torch.device | str = "cpu"
+    ) -> None:
         self.s = settings
-        self.actor, self.critic = actor, critic
+        self.device = torch.device(device)
+        self.actor, self.critic = actor.to(self.device), critic.to(self.device)
         self.critic_target = copy.deepcopy(critic).requires_grad_(False)
-        self.log_alpha = torch.tensor(math.log(settings.init_alpha), requires_grad=True)
+        self.log_alpha = torch.tensor(math.log(settings.init_alpha), device=self.device, requires_grad=True)
         if settings.share_encoder and not hasattr(critic, "encoder"):
             raise ValueError("share_encoder needs a critic with an image encoder (not the state critic)")
         if settings.share_encoder:
@@ -296,51 +362,82 @@ class RecurrentSAC:
         return self.log_alpha.detach().exp()
 
     def update(self, batch: Batch) -> dict[str, float]:
-        alpha, w = self.alpha, self.s.bc_weight
+        """``update_tensors``, its statistics read as floats."""
+        return {k: float(v) for k, v in self.update_tensors(batch).items()}
+
+    def update_tensors(self, batch: Batch) -> dict[str, Tensor | float]:
+        """One update: critic, actor (SAC term, plus the BC term where on), alpha, target critic;
+        its statistics as 0-d tensors on the device (``bc_weight`` a float), never read here.
+
+        The BC term's gradient is taken apart from the SAC actor term's, so both norms are reported
+        (which of them steers the actor). With a shared encoder the BC term also trains the encoder,
+        beside the critic loss (a sparse-reward critic alone shapes it too slowly)."""
+        s, alpha = self.s, self.alpha
+        w = s.bc_weight_at(self.updates)
         feats = embedding = None
-        if self.s.share_encoder:
+        if s.share_encoder:
             feats, _ = self.critic.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
             embedding = feats[..., -self.critic.cfg.image_embed :]
         policy = policy_outputs(
             self.actor, batch, embedding=None if embedding is None else embedding.detach()
         )
-        targets = critic_targets(self.critic_target, batch, policy, alpha, self.s.gamma, self.s.n_step)
-        if self.s.return_bound:
-            targets = bounded_targets(targets, batch, self.s.gamma)
+        with torch.no_grad():
+            target_feats = self.critic_target.features_of(batch)
+        targets = critic_targets(self.critic_target, batch, policy, alpha, s.gamma, s.n_step, target_feats)
+        if s.return_bound:
+            targets = bounded_targets(targets, batch, s.gamma)
+        critique = critique_demos(self.critic_target, target_feats, batch, policy.mean)
+
+        # losses
         q_loss, feats, info = critic_loss(self.critic, batch, targets, feats)
-        critic_objective, b_loss, actor_bc_grads = q_loss, None, ()
-        if w > 0 and embedding is None:
-            b_loss = bc_loss(policy.mean, batch)
-        elif w > 0:
-            # shared encoder: the BC term trains it beside the critic (a sparse-reward critic alone
-            # shapes it too slowly for the actor to tell situations apart); the SAC actor loss does not
-            mean, _, _ = self.actor(batch.images, batch.prev_actions, embedding=embedding)
-            b_loss = bc_loss(mean, batch)
-            critic_objective = q_loss + w * b_loss
-            actor_bc_grads = torch.autograd.grad(
-                w * b_loss, self._actor_params, retain_graph=True, allow_unused=True
-            )
+        b_loss = bc_mean = None
+        if w > 0:
+            # with a shared encoder the BC term needs the actor pass on the live (undetached) embedding
+            bc_mean = policy.mean if embedding is None else self.actor(batch.images, batch.prev_actions,
+                                                                        embedding=embedding)[0]  # fmt: skip
+            keep = critique.keep if (s.bc_filter and critique is not None) else None
+            b_loss = bc_loss(bc_mean, batch, keep)
+
+        # critic (and the shared encoder: the BC term's share of it)
+        critic_objective = q_loss if (b_loss is None or embedding is None) else q_loss + w * b_loss
+        bc_actor_grads: Grads = ()
+        if b_loss is not None:
+            bc_actor_grads = _grads(w * b_loss, self._actor_params, retain=True)
         _step(self.critic_opt, critic_objective, self._critic_params)
+
+        # actor: SAC term through the just-updated Q heads, plus the BC gradient
         pi_loss = actor_loss(self.critic, feats, batch, policy, alpha)
-        pi_objective = pi_loss + w * b_loss if b_loss is not None and not actor_bc_grads else pi_loss
-        _step(self.actor_opt, pi_objective, self._actor_params, actor_bc_grads)
+        pi_grads = _grads(pi_loss, self._actor_params)
+        _apply(self.actor_opt, self._actor_params, pi_grads, bc_actor_grads)
+
+        # temperature and target critic
         log_probs = policy.log_probs[:, :-1]
-        a_loss = alpha_loss(self.log_alpha, log_probs, batch.mask, self.s.target_entropy)
-        if self.s.autotune_alpha:
+        a_loss = alpha_loss(self.log_alpha, log_probs, batch.mask, s.target_entropy)
+        if s.autotune_alpha:
             _step(self.alpha_opt, a_loss, [self.log_alpha])
-        soft_update(self.critic_target, self.critic, self.s.tau)
+        soft_update(self.critic_target, self.critic, s.tau)
         self.updates += 1
-        extra = {} if b_loss is None else {"bc_loss": float(b_loss.detach())}
-        return extra | {
-            "critic_loss": float(q_loss.detach()),
-            "actor_loss": float(pi_loss.detach()),
-            "alpha_loss": float(a_loss.detach()),
-            "alpha": float(self.alpha),
-            "q1": float(info["q1"]),
-            "q2": float(info["q2"]),
-            "target_q": float(masked_mean(targets, batch.mask)),
-            "entropy": float(-masked_mean(log_probs.detach(), batch.mask)),
+
+        out: dict[str, Tensor | float] = {
+            "critic_loss": q_loss.detach(),
+            "actor_loss": pi_loss.detach(),
+            "alpha_loss": a_loss.detach(),
+            "alpha": self.alpha,
+            "q1": info["q1"],
+            "q2": info["q2"],
+            "target_q": masked_mean(targets, batch.mask),
+            "entropy": -masked_mean(log_probs.detach(), batch.mask),
+            "actor_grad_norm": _norm(pi_grads),
         }
+        if critique is not None:
+            out |= {
+                "bc_accept": critique.accept,
+                "q_rank_gap": critique.rank_gap,
+                "q_demo_minus_pi": critique.pi_gap,
+            }
+        if b_loss is not None:
+            out |= {"bc_loss": b_loss.detach(), "bc_weight": w, "bc_grad_norm": _norm(bc_actor_grads)}
+        return out
 
     # checkpoints -------------------------------------------------------------------------------
     def state_dict(self) -> dict:

@@ -14,15 +14,23 @@ Rate limiting (``rate_limiter.SampleToInsertRatio``)
     will take in total before producers should wait (``allowed_steps``), and actors hold back new
     episodes while that allowance is used up, so fast actors do not run ahead of the learner's update
     budget. Everything inserted is still accepted: the gate asks, it never drops.
+
+Devices
+    The agent may train on a GPU; the replay stays in host memory and each batch is copied to the
+    agent's device (``batch.to_batch``). Reading an update's statistics there waits for the device
+    (a host synchronisation), so with ``metrics_every`` N > 1 they stay on it (``MetricsWindow``) and
+    are read as means every N updates.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
 from proto.control import ReplayGate
 from services.learner.core.batch import to_batch
@@ -100,6 +108,31 @@ class TrainerSettings:
     """Env-step budget of the run: the gate never allows more (0: none)."""
     max_updates: int = 0
     """The trainer is done after this many updates (0: never)."""
+    metrics_every: int = 1
+    """Read the update statistics from the agent's device every this many updates, as means over
+    them (``MetricsWindow``); 1 reads each update's (the CPU default: no device to wait for)."""
+
+
+class MetricsWindow:
+    """Update statistics summed where they are (0-d tensors stay on their device: adding them queues
+    work, it does not wait for it) and read as means on demand, the one wait for the device."""
+
+    def __init__(self) -> None:
+        self._sums: dict[str, torch.Tensor | float] = {}
+        self._counts: dict[str, int] = {}
+
+    def add(self, info: Mapping[str, torch.Tensor | float]) -> None:
+        for k, v in info.items():
+            v = v.detach() if isinstance(v, torch.Tensor) else float(v)
+            self._sums[k] = v if k not in self._sums else self._sums[k] + v
+            self._counts[k] = self._counts.get(k, 0) + 1
+
+    def read(self) -> dict[str, float]:
+        """The mean of each statistic since the last read (those never added are absent); clears."""
+        out = {k: float(total) / self._counts[k] for k, total in self._sums.items()}
+        self._sums.clear()
+        self._counts.clear()
+        return out
 
 
 class Trainer:
@@ -118,6 +151,7 @@ class Trainer:
         # ``updates`` its count (subclasses hold another algorithm's agent here)
         self.agent, self.replay, self.limiter, self.rng, self.settings = agent, replay, limiter, rng, settings
         self.guard = guard if guard is not None else nullcontext()
+        self.window = MetricsWindow()
 
     @property
     def sac(self) -> RecurrentSAC:
@@ -162,7 +196,10 @@ class Trainer:
 
     def step(self) -> dict[str, float] | None:
         """One SAC update on a freshly drawn batch if the limiter allows it now (None otherwise): the
-        update's losses and statistics, plus the batch's demonstration share and rewarded transitions."""
+        update's losses and statistics, plus the batch's demonstration share and rewarded transitions.
+
+        With ``metrics_every`` N > 1 the losses and statistics come every N-th update only, as means
+        over the N (``MetricsWindow``); the other updates give the batch's two numbers alone."""
         s = self.settings
         with self.guard:
             ready = self.replay.num_episodes > 0 and self.limiter.can_sample()
@@ -179,7 +216,12 @@ class Trainer:
             )
         if sample is None:
             return None
-        info = self.agent.update(to_batch(sample))
+        batch = to_batch(sample, self.agent.device)
+        if s.metrics_every == 1:
+            info = self.agent.update(batch)
+        else:
+            self.window.add(self.agent.update_tensors(batch))
+            info = self.window.read() if self.agent.updates % s.metrics_every == 0 else {}
         info["batch_demo_share"] = float(sample.from_demo_set.mean())
         info["batch_reward_transitions"] = float((sample.rewards > 0).sum())
         with self.guard:

@@ -1,0 +1,97 @@
+"""``--init-actor PATH``: a fresh learner's actor starts from weights on disk (a clone written by
+`mea bench imitation`, or a weights file / run dir a learner or evaluator wrote).
+
+The file is read by the weights-file reader (``services.common.weights_file``: digest checked, nothing
+unpickled). A sealed file is checked with the key of the run that wrote it: the ``run.key`` in the
+file's directory or one of the three above it (``RUN_DIR/learner/weights/weights-N.blob`` ->
+``RUN_DIR/run.key``); a sealed file with no key there is refused. It must be an Equi-RSAC policy of the
+learner's algorithm and observation whose tensors fit the learner's actor name for name and shape for
+shape (``check_fits``), else ValueError naming what differs.
+
+When the learner shares the actor's encoder with the critic (``sac.share_encoder``: the actor reads
+``critic.encoder``), loading the actor loads that encoder too; the target critic is then made equal
+to the critic again, as at any fresh start.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from proto.seal import is_sealed
+from proto.weights import WeightsBlob
+from services.common import run_key, weights_file
+from services.learner.core.networks import build_actor
+from services.learner.core.policy import PolicySpec
+from services.learner.core.tensors import fitting_state
+
+if TYPE_CHECKING:
+    from services.learner.config import LearnerConfig
+    from services.learner.core.trainer import Trainer
+
+KEY_SEARCH_DEPTH = 4
+"""Directories searched for the writer's ``run.key``: the file's own and the three above it."""
+
+
+def _writer_key(path: Path) -> bytes | None:
+    """The key of the run that sealed ``path`` (None for an unsealed file)."""
+    with path.open("rb") as f:
+        head = f.read(64)
+    if not is_sealed(head):
+        return None
+    for d in list(path.resolve().parents)[:KEY_SEARCH_DEPTH]:
+        if (d / run_key.FILE_NAME).is_file():
+            return run_key.load(d / run_key.FILE_NAME)
+    raise weights_file.WeightsFileError(
+        f"{path}: the file is sealed and no {run_key.FILE_NAME} of the run that wrote it is beside it"
+    )
+
+
+def read(path: Path) -> tuple[Path, WeightsBlob]:
+    """The weights file ``path`` names (a file, or the newest in a run dir / weights folder) and its
+    blob, checked (seal with its run's key, digest); ValueError (``WeightsFileError``, ``RunKeyError``)
+    naming the problem."""
+    if not Path(path).exists():
+        raise weights_file.WeightsFileError(f"{path}: no such file or directory")
+    try:
+        file = weights_file.resolve(Path(path))
+        return file, weights_file.read(file, _writer_key(file))
+    except OSError as exc:
+        raise weights_file.WeightsFileError(f"{path}: cannot read it ({exc.strerror or exc})") from None
+
+
+def check_fits(blob: WeightsBlob, cfg: LearnerConfig) -> dict[str, torch.Tensor]:
+    """``blob``'s tensors as the state dict of ``cfg``'s actor; ValueError unless the blob is a policy
+    of ``cfg``'s algorithm and observation whose tensors fit that actor name for name and shape for shape."""
+    if cfg.algorithm == "gasv2":
+        raise ValueError("only the Equi-RSAC learners (equi_rsac, rsac) start from an actor's weights")
+    if blob.algorithm != cfg.algorithm:
+        raise ValueError(f"the weights are a {blob.algorithm} policy, the learner trains {cfg.algorithm}")
+    spec = PolicySpec.from_json(blob.config_json)
+    if spec.observation != cfg.observation:
+        raise ValueError(
+            f"the weights' policy observes {spec.observation!r}, the learner's observes {cfg.observation!r}"
+        )
+    try:
+        return fitting_state(build_actor(cfg.net), blob.tensors, blob.version)
+    except ValueError as exc:
+        raise ValueError(
+            f"{exc}; the weights' network is group {spec.net.group}, image_embed {spec.net.image_embed}, "
+            f"lstm_hidden {spec.net.lstm_hidden}, the learner's group {cfg.net.group}, image_embed "
+            f"{cfg.net.image_embed}, lstm_hidden {cfg.net.lstm_hidden} (a clone of the run's --task and "
+            "--learner-preset fits)"
+        ) from None
+
+
+def load_into(trainer: Trainer, state: dict[str, torch.Tensor]) -> None:
+    """Start ``trainer``'s actor from ``state`` (``check_fits``); a critic encoder the actor shares
+    gets it too, and the target critic is made equal to the critic."""
+    sac = trainer.agent
+    sac.actor.load_state_dict(state, strict=True)
+    if getattr(sac.actor, "encoder", None) is getattr(sac.critic, "encoder", object()):
+        sac.critic_target.load_state_dict(sac.critic.state_dict())
+
+
+__all__ = ["check_fits", "load_into", "read"]

@@ -1,0 +1,149 @@
+"""The imitation path `mea bench imitation` measures, end to end on two real Block Pull demos: the
+run's demos and copies in the learner's replay, batches from its sampler, the learner's BC loss, and
+the clone acting through the evaluator's policy runtime; plus the demonstration split of batches."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from services.actor.config import ActorConfig
+from services.actor.rollout import Actor, policy_input
+from services.augmenter.core.pipeline import augment_episode, with_images
+from services.bench.imitation import (
+    ImitationBenchConfig,
+    clone,
+    clone_blob,
+    demo_replay,
+    record_demos,
+    run_config,
+)
+from services.common.config import ServiceConfig
+from services.evaluator.config import EvaluatorConfig
+from services.learner.core.batch import to_batch
+from services.learner.core.policy import PolicyRuntime
+from services.learner.core.replay import SequenceReplay
+from services.learner.core.sac import bc_loss
+from services.plan import augmenter_config, learner_config
+from services.tasks import make_env
+
+ROTATIONS = 4  # rotated copies per demo: enough to exercise the copies, cheap to augment
+
+
+@pytest.fixture(scope="module")
+def setting():
+    """The run `mea bench imitation --demos 2 --rotations 4` clones: its 2 demos, learner, replay."""
+    torch.set_num_threads(1)
+    rc = run_config(ImitationBenchConfig(demos=(2,), rotations=ROTATIONS))
+    learner = learner_config(rc, Path("unused"), ServiceConfig())
+    demos = record_demos(rc, 2)
+    replay, counts = demo_replay(demos, rc, learner)
+    return rc, learner, demos, replay, counts
+
+
+def test_the_run_s_two_demos_and_their_copies_fill_the_replay(setting):
+    rc, learner, demos, replay, counts = setting
+    seeds = [int(d.seed) for d in demos]
+    assert seeds == sorted(set(seeds)) and seeds[-1] < 8  # actor 0's stream under run seed 0, as `mea run`
+    assert [d.policy_kind for d in demos] == ["expert_probe", "expert_direct"]
+    assert all(d.is_demo and d.succeeded for d in demos)
+    assert counts["episodes"] == 2 * (1 + ROTATIONS)
+    assert counts["transitions"] == (1 + ROTATIONS) * sum(d.num_steps for d in demos)
+    assert learner.net.group == "c4" and learner.observation == "voxel" and learner.net.image_size == 84
+
+
+def test_cloning_two_demos_fits_them_and_the_clone_replays_their_actions_on_their_seeds(setting):
+    rc, learner, demos, replay, _ = setting
+    fast = dataclasses.replace(learner, sac=dataclasses.replace(learner.sac, lr=1e-3))
+    actor, before, after, _ = clone(replay, fast, seed=0, updates=400, batch=8, tag="test")
+    assert before > 1.0, before  # an untrained actor is far from the demos
+    assert after < before / 20, (before, after)
+
+    # the clone through the evaluator's runtime (deterministic: tanh of the mean), in the evaluator's
+    # env on each demo's own seed, fed the demo's actions: its actions are the demo's
+    blob = clone_blob(actor, fast, "imitation-test")
+    env = make_env(rc.task, EvaluatorConfig(task=rc.task).env_settings())
+    projection = augmenter_config(rc, ServiceConfig()).augment.projection
+    try:
+        for demo in demos:
+            stored = with_images(demo, projection).images  # what the replay holds
+            runtime = PolicyRuntime(deterministic=True)
+            runtime.load(blob)
+            runtime.reset()
+            obs = env.reset(int(demo.seed))
+            errors = []
+            for t in range(5):
+                image = policy_input(obs, learner.observation)
+                assert np.array_equal(image, stored[t])  # the same input the clone trained on
+                errors.append(float(np.abs(runtime.act(image) - demo.actions[t]).max()))
+                obs, *_ = env.step(demo.actions[t])
+            assert max(errors) < 0.3 and np.mean(errors) < 0.12, (demo.seed, errors)
+    finally:
+        env.close()
+
+
+def test_batches_drawn_with_demo_fraction_hold_the_demos_and_the_bc_term_sees_only_them(setting):
+    rc, learner, demos, _, _ = setting
+    settings = augmenter_config(rc, ServiceConfig()).augment
+    actor = Actor(ActorConfig(task=rc.task, policy="random", seed_base=500), "actor-0")
+    randoms = []
+    for _ in range(3):
+        b = actor.random_episode()
+        randoms.append(b.finish(actor.episode_id(b)))
+    actor.env.close()
+    replay = SequenceReplay(
+        20_000, image_size=84, seq_len=learner.seq_len, channels=learner.net.in_channels, seed=0
+    )
+    family = {}  # stored episode id -> the raw episode it was made from
+    for ep in [*demos, *randoms]:
+        for out in augment_episode(ep, settings)[0]:
+            replay.insert(out)
+            family[out.episode_id] = ep.episode_id
+    demo_ids = {d.episode_id for d in demos}
+
+    rng = np.random.default_rng(3)
+    seen = set()
+    for _ in range(40):
+        sample = replay.sample(8, rng, demo_fraction=0.5, trim=True)
+        assert int(sample.from_demo_set.sum()) == 4
+        assert np.array_equal(sample.from_demo_set, sample.is_demo)
+        sources = [family[replay.episode_info(int(i))["episode_id"]] for i in sample.episode_index]
+        assert [s in demo_ids for s in sources] == list(sample.from_demo_set)
+        seen |= set(sources)
+        batch = to_batch(sample)
+        assert torch.equal(batch.demo, torch.from_numpy(sample.from_demo_set).float())
+    assert seen == demo_ids | {r.episode_id for r in randoms}  # every demo and every other episode drawn
+
+    # the BC term reads the demonstration rows only: the other episodes' actions do not move it
+    batch = to_batch(replay.sample(8, np.random.default_rng(4), demo_fraction=0.5, trim=True))
+    mean = torch.randn(batch.actions.shape[0], batch.actions.shape[1] + 1, batch.actions.shape[2])
+    other = (1 - batch.demo)[:, None, None]
+    scrambled = dataclasses.replace(batch, actions=batch.actions * (1 - other) + 0.9 * other)
+    assert torch.allclose(bc_loss(mean, batch), bc_loss(mean, scrambled))
+    assert not torch.allclose(
+        bc_loss(mean, batch), bc_loss(mean, dataclasses.replace(batch, demo=1 - batch.demo))
+    )
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--variant", "gasv2"], "--variant must be one of"),
+        (["--task", "surgical_grasp_any"], "--task must be one of"),
+        (["--demos", "0"], "--demos must be one or more counts >= 1"),
+        (["--learner-preset", "gasv2"], "--learner-preset must be one of"),
+        (["--expert", "oracle"], "--expert must be one of"),
+    ],
+)
+def test_bad_options_are_refused_in_one_line_and_nothing_is_written(argv, message, tmp_path, capsys):
+    from services.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "imitation", *argv, "--out", str(tmp_path / "out")])
+    err = " ".join(capsys.readouterr().err.replace("│", " ").split())
+    assert exit_.value.code == 2 and message in err and "Traceback" not in err, err
+    assert not (tmp_path / "out").exists()

@@ -1,0 +1,344 @@
+"""The Equi-RSAC learner on a torch device (`--device`, `--learner-device`): device names checked in one
+line, batches copied to the device, statistics left there and read every N updates as means (the same
+numbers), published weights and checkpoints on the CPU so a run resumes across devices.
+
+Everything runs on the CPU here; the tests marked ``cuda`` need a GPU and skip, saying so, where
+there is none (``tools/gpu-check.sh`` runs them on one)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from proto.topics import EPISODES_AUGMENTED, STATUS, WEIGHTS_ANNOUNCE
+from services.common import config
+from services.common.bus import Hub, InProcBus
+from services.common.config import ServiceConfig
+from services.learner import checkpoint, init_actor
+from services.learner.config import LearnerConfig, build_trainer, check_device
+from services.learner.core.batch import to_batch
+from services.learner.core.networks import build_actor, build_critic
+from services.learner.core.policy import PolicyRuntime
+from services.learner.core.sac import RecurrentSAC, SacSettings
+from services.learner.core.trainer import MetricsWindow, Trainer
+from services.run_config import RunConfig, read_resume
+from tests.helpers.learner import SIZE, TINY_NET, learner_episode, start_learner, tiny_learner_config
+
+pytestmark = pytest.mark.unit
+CUDA = torch.cuda.is_available()
+needs_cuda = [
+    pytest.mark.cuda,
+    pytest.mark.skipif(
+        not CUDA,
+        reason=f"CUDA is absent here (torch {torch.__version__}); tools/gpu-check.sh runs it on a GPU",
+    ),
+]
+DEVICES = ["cpu", pytest.param("cuda", marks=needs_cuda)]
+OWN_FILES = ("sac.py", "trainer.py", "batch.py", "tensors.py")
+"""The update loop's own modules: none of them may wait for the device between metric reads."""
+
+
+def filled_trainer(device: str = "cpu", episodes: int = 6, **kw) -> Trainer:
+    trainer = build_trainer(tiny_learner_config(Path("unused"), ServiceConfig(), device=device, **kw))
+    for k in range(episodes):
+        trainer.insert(learner_episode(k, T=10 + k % 3, demo=k == 0))
+    return trainer
+
+
+@pytest.fixture
+def no_tf32():
+    """fp32 matmuls, convolutions and cuDNN LSTMs in full precision for the test, restored after."""
+    knobs = [torch.backends.cuda.matmul, torch.backends.cudnn.conv, torch.backends.cudnn.rnn]
+    saved = [k.fp32_precision for k in knobs]
+    for k in knobs:
+        k.fp32_precision = "ieee"
+    yield
+    for k, v in zip(knobs, saved, strict=True):
+        k.fp32_precision = v
+
+
+def actor_output(actor: torch.nn.Module, seed: int = 3) -> torch.Tensor:
+    """The actor's mean and log std (CPU) on a fixed random sequence, computed on the actor's device."""
+    g = torch.Generator().manual_seed(seed)
+    images = torch.rand(2, 5, 2, SIZE, SIZE, generator=g)
+    prev = torch.rand(2, 5, 5, generator=g) * 2 - 1
+    device = next(actor.parameters()).device
+    with torch.no_grad():
+        mean, log_std, _ = actor(images.to(device), prev.to(device))
+    return torch.cat([mean, log_std], -1).cpu()
+
+
+# ------------------------------------------------------------------------------------------------
+# device names
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("bad", ["gpu", "cuda0", "cpu:1", "CUDA", "", "mps", "cuda:x"])
+def test_a_device_name_that_is_not_cpu_or_cuda_is_refused_in_one_line(bad):
+    with pytest.raises(ValueError, match=r"^device must be cpu, cuda or cuda:N, not ") as err:
+        LearnerConfig(device=bad)
+    assert "\n" not in str(err.value)
+    with pytest.raises(ValueError, match=r"^--learner-device must be cpu, cuda or cuda:N"):
+        RunConfig(learner_device=bad)
+
+
+@pytest.mark.skipif(CUDA, reason="checks the refusal on a machine without CUDA; this one has it")
+@pytest.mark.parametrize("name", ["cuda", "cuda:1"])
+def test_cuda_where_there_is_none_is_refused_naming_the_option(name):
+    with pytest.raises(ValueError, match=rf"^--learner-device '{name}': CUDA is unavailable here .*use cpu$"):
+        RunConfig(learner_device=name)
+    with pytest.raises(ValueError, match=rf"^device '{name}': CUDA is unavailable here"):
+        LearnerConfig(device=name)
+
+
+@pytest.mark.parametrize("algorithm", ["equi_rsac", "rsac"])
+def test_every_sac_learner_accepts_the_cpu_and_names_its_device(algorithm):
+    group = "c4" if algorithm == "equi_rsac" else "none"
+    cfg = LearnerConfig(algorithm=algorithm, net=dataclasses.replace(TINY_NET, group=group), device="cpu")
+    assert cfg.trainer_settings().metrics_every == 1  # the CPU reads each update's numbers, as before
+    check_device("cpu", "--device")  # no exception
+
+
+@pytest.mark.parametrize("name", ["cuda", "cuda:0"])
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason=f"CUDA is absent here (torch {torch.__version__})")
+def test_cuda_is_accepted_where_it_is_and_reads_metrics_every_tensorboard_point(name):
+    cfg = LearnerConfig(device=name, tensorboard_every=7)
+    assert cfg.trainer_settings().metrics_every == 7
+    assert RunConfig(learner_device=name).learner_device == name
+    with pytest.raises(ValueError, match=r"CUDA device\(s\), cuda:0"):
+        LearnerConfig(device=f"cuda:{torch.cuda.device_count()}")
+
+
+def test_a_resumed_run_takes_the_learner_device_from_the_command_line(tmp_path):
+    # a run started on a GPU (saved "cuda") continues on this machine's --learner-device
+    saved = config.to_jsonable(RunConfig(run_dir=tmp_path))
+    saved["learner_device"] = "cuda:0"
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    resumed = read_resume(RunConfig(resume=tmp_path, learner_device="cpu"), given={"learner_device"})
+    assert resumed.config.learner_device == "cpu" and resumed.config.resumes == 1
+    with pytest.raises(ValueError, match="--task cannot change on --resume"):
+        read_resume(RunConfig(resume=tmp_path, task="block_pick"), given={"task", "learner_device"})
+
+
+# ------------------------------------------------------------------------------------------------
+# batches, statistics
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_batch_on_the_device_holds_the_cpu_batch_bit_for_bit(device):
+    trainer = filled_trainer()
+    sample = trainer.replay.sample(4, np.random.default_rng(0), trim=True)
+    ref, got = to_batch(sample), to_batch(sample, device)
+    assert torch.equal(ref.actions, torch.from_numpy(sample.actions))  # the CPU shares the sample's arrays
+    for name in ("images", "actions", "rewards", "terminated", "mask", "demo", "obs_mask"):
+        a, b = getattr(ref, name), getattr(got, name)
+        assert b.device.type == device and b.dtype == a.dtype, name
+        assert torch.equal(b.cpu(), a), name
+    assert ref.images.dtype == torch.float32 and float(ref.images.max()) <= 1.0
+
+
+def test_update_is_update_tensors_read_as_floats_bit_for_bit():
+    def sac() -> RecurrentSAC:
+        torch.manual_seed(0)
+        return RecurrentSAC(build_actor(TINY_NET), build_critic(TINY_NET), SacSettings(bc_weight=1.0))
+
+    a, b = sac(), sac()
+    sample = filled_trainer().replay.sample(4, np.random.default_rng(1), trim=True)
+    for _ in range(2):
+        torch.manual_seed(5)
+        floats = a.update(to_batch(sample))
+        torch.manual_seed(5)
+        tensors = b.update_tensors(to_batch(sample))
+        assert list(floats) == list(tensors) and "bc_loss" in floats
+        assert all(isinstance(v, float) for v in floats.values())
+        assert floats == {k: float(v) for k, v in tensors.items()}
+    for p, q in zip(a.actor.parameters(), b.actor.parameters(), strict=True):
+        assert torch.equal(p, q)
+
+
+def test_the_metrics_window_gives_the_means_of_what_it_was_given_and_starts_again():
+    w = MetricsWindow()
+    w.add({"loss": torch.tensor(1.0), "bc_weight": 2.0})
+    w.add({"loss": torch.tensor(4.0)})
+    assert w.read() == {"loss": 2.5, "bc_weight": 2.0}
+    assert w.read() == {}
+
+
+def test_reading_every_n_updates_trains_the_same_and_reports_the_means():
+    every, steps = 3, 6
+    eager, lazy = filled_trainer(), filled_trainer()
+    lazy.settings = dataclasses.replace(lazy.settings, metrics_every=every)
+    per_update, reads = [], []
+    for i in range(steps):
+        torch.manual_seed(100 + i)
+        per_update.append(eager.step())
+        torch.manual_seed(100 + i)
+        info = lazy.step()
+        assert info is not None and info["batch_demo_share"] == per_update[-1]["batch_demo_share"]
+        if (i + 1) % every:
+            assert set(info) == {"batch_demo_share", "batch_reward_transitions"}
+        else:
+            reads.append(info)
+    assert len(reads) == steps // every
+    for r, window in zip(reads, (per_update[:every], per_update[every:]), strict=True):
+        for key in ("critic_loss", "actor_loss", "alpha", "q1", "entropy", "actor_grad_norm"):
+            assert r[key] == pytest.approx(np.mean([u[key] for u in window]), rel=1e-5, abs=1e-7), key
+    for p, q in zip(eager.sac.actor.parameters(), lazy.sac.actor.parameters(), strict=True):
+        assert torch.equal(p, q)  # the same training, bit for bit: only the reading differs
+
+
+# ------------------------------------------------------------------------------------------------
+# checkpoints and published weights cross devices
+# ------------------------------------------------------------------------------------------------
+
+
+def test_on_cpu_keeps_cpu_tensors_and_the_containers():
+    t = torch.ones(2)
+    state = {"a": t, "b": [t, (1, 2.0)], "c": {"d": "x"}}
+    out = checkpoint.on_cpu(state)
+    assert out["a"] is t and out["b"][0] is t and out["b"][1] == (1, 2.0) and type(out["b"][1]) is tuple
+    assert out["c"] == {"d": "x"}
+
+
+@pytest.mark.parametrize("trained_on", DEVICES)
+@pytest.mark.parametrize("resumed_on", DEVICES)
+def test_a_checkpoint_resumes_on_another_device_with_the_same_actor(
+    tmp_path, trained_on, resumed_on, no_tf32
+):
+    trainer = filled_trainer(trained_on)
+    for _ in range(3):
+        assert trainer.step() is not None
+    lineage = checkpoint.Lineage(version=2, run_id="run", last={})
+    path = checkpoint.save_trainer(tmp_path, trainer, lineage, {"device": trained_on})
+    # written from the CPU whatever the training device: loads anywhere without map_location
+    raw = torch.load(path, weights_only=True)
+    tensors = [v for v in _leaves(raw["learner"]) if isinstance(v, torch.Tensor)]
+    assert tensors and {t.device.type for t in tensors} == {"cpu"}
+
+    resumed = filled_trainer(resumed_on, episodes=0)
+    assert checkpoint.restore_trainer(tmp_path, resumed).version == 2
+    assert resumed.updates == 3 and len(resumed.replay) == len(trainer.replay)
+    assert torch.allclose(actor_output(resumed.sac.actor), actor_output(trainer.sac.actor), atol=1e-5)
+    state, ref = resumed.sac.actor.state_dict(), trainer.sac.actor.state_dict()
+    assert all(torch.equal(state[k].cpu(), ref[k].cpu()) for k in ref)
+    assert resumed.sac.log_alpha.device.type == resumed_on
+    opt_state = next(iter(resumed.sac.critic_opt.state.values()))
+    assert opt_state["exp_avg"].device.type == resumed_on  # the optimiser's moments moved with it
+    assert resumed.step() is not None and resumed.updates == 4  # and it trains on
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_published_weights_are_numpy_on_the_cpu_and_act_like_the_trained_actor(device, no_tf32):
+    trainer = filled_trainer(device)
+    trainer.step()
+    tensors = trainer.policy_tensors()
+    assert all(isinstance(v, np.ndarray) for v in tensors.values())
+    actor = build_actor(TINY_NET)
+    actor.load_state_dict({k: torch.from_numpy(v) for k, v in tensors.items()})
+    assert torch.allclose(actor_output(actor), actor_output(trainer.sac.actor), atol=1e-5)
+
+
+def _leaves(x):
+    if isinstance(x, dict):
+        for v in x.values():
+            yield from _leaves(v)
+    elif isinstance(x, (list, tuple)):
+        for v in x:
+            yield from _leaves(v)
+    else:
+        yield x
+
+
+# ------------------------------------------------------------------------------------------------
+# the service: a run on the device, resumed on another
+# ------------------------------------------------------------------------------------------------
+
+
+def _run_learner(tmp_path: Path, device: str, resume: bool, max_updates: int) -> dict[str, float]:
+    svc = ServiceConfig(instance_id="learner-d", metrics_port=0, log_format="text", heartbeat_seconds=0.2)
+    cfg = tiny_learner_config(tmp_path, svc, device=device, resume=resume, max_updates=max_updates,
+                              samples_per_insert=1.0, min_steps=20, error_buffer=30.0,
+                              tensorboard_dir=tmp_path / "tb", tensorboard_every=3)  # fmt: skip
+    hub = Hub()
+    observer = InProcBus(hub)
+    status = observer.subscribe(STATUS, capacity=1024, service="learner")
+    announces = observer.subscribe(WEIGHTS_ANNOUNCE, capacity=256)
+    thread, result = start_learner(cfg, hub, observer)
+    for k in range(4):
+        observer.publish(
+            EPISODES_AUGMENTED, learner_episode(10 * max_updates + k, T=10), source="augmenter-0"
+        )
+    thread.join(timeout=120)
+    assert not thread.is_alive() and result["rc"] == 0
+    assert announces.drain()
+    policy = PolicyRuntime(deterministic=True)
+    policy.load(init_actor.read(tmp_path)[1])  # the newest version the run wrote, acting on this CPU
+    assert np.all(np.abs(policy.act(np.zeros((2, SIZE, SIZE), np.uint8))) <= 1)
+    return [d.message.counters for d in status.drain()][-1]
+
+
+def test_the_learner_reading_metrics_every_n_updates_reports_them_and_resumes(tmp_path, monkeypatch):
+    # on the CPU the learner reads each update; force the GPU's every-N reading to run its path here
+    original = LearnerConfig.trainer_settings
+    monkeypatch.setattr(LearnerConfig, "trainer_settings",
+                        lambda self: dataclasses.replace(original(self), metrics_every=3))  # fmt: skip
+    first = _run_learner(tmp_path, "cpu", resume=False, max_updates=7)
+    assert first["updates"] == 7 and np.isfinite(first["critic_loss"])  # read at update 6, kept after
+    assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+    second = _run_learner(tmp_path, "cpu", resume=True, max_updates=10)
+    assert second["updates"] == 10 and np.isfinite(second["critic_loss"])
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason=f"CUDA is absent here (torch {torch.__version__})")
+def test_a_gpu_run_resumes_on_the_cpu_and_back(tmp_path):
+    legs = [("cuda", 5), ("cpu", 8), ("cuda", 11)]
+    for i, (device, updates) in enumerate(legs):
+        counters = _run_learner(tmp_path, device, resume=i > 0, max_updates=updates)
+        assert counters["updates"] == updates, device
+        assert np.isfinite(counters["critic_loss"]), device
+
+
+# ------------------------------------------------------------------------------------------------
+# CUDA only: no waiting for the device inside the update loop
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason=f"CUDA is absent here (torch {torch.__version__})")
+def test_updates_between_metric_reads_never_wait_for_the_gpu_in_the_loops_own_code():
+    trainer = filled_trainer("cuda", tensorboard_every=4)
+    assert trainer.settings.metrics_every == 4 and trainer.sac.device.type == "cuda"
+    assert trainer.step() is not None  # update 1 warms up cuDNN, cuBLAS and the allocators
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            unread = [trainer.step(), trainer.step()]  # updates 2 and 3: nothing read back
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    assert all(set(info) == {"batch_demo_share", "batch_reward_transitions"} for info in unread)
+    syncs = [(Path(w.filename).name, w.lineno) for w in caught if "synchronizing" in str(w.message)]
+    print("host synchronisations outside the loop's own modules:", sorted(set(syncs)))
+    assert not [s for s in syncs if s[0] in OWN_FILES]
+    info = trainer.step()  # update 4 reads the means of updates 1 to 4
+    assert np.isfinite(info["critic_loss"]) and "alpha" in info
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason=f"CUDA is absent here (torch {torch.__version__})")
+def test_the_update_benchmark_times_cuda_with_percentiles():
+    from services.bench.learner import LearnerBenchConfig, bench_updates
+
+    rows = bench_updates(LearnerBenchConfig(variants=("cpu-small:c4",), updates=3, episodes=8, device="cuda"))
+    (row,) = rows
+    assert row["device"].startswith("cuda") and 0 < row["ms/update p50"] <= row["ms/update p99"]
