@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 TAG_PREFIXES = (
     ("batch_", "charts/"),
@@ -35,10 +36,9 @@ class ScalarLog:
     """Means of named scalars over ``every`` calls of ``add``, written to ``log_dir`` at an env step."""
 
     def __init__(self, log_dir: Path, every: int, suffix: str) -> None:
-        from torch.utils.tensorboard import SummaryWriter  # deferred: tensorboard imports take ~1 s
-
+        self.log_dir, self.suffix = log_dir, suffix
         self.every = max(1, every)
-        self.writer = SummaryWriter(str(log_dir), filename_suffix=f".{suffix}")
+        self._writer: Any = None  # opened at the first write: importing tensorboard takes seconds
         self._sums: dict[str, float] = {}
         self._counts: dict[str, int] = {}
         self._calls = 0
@@ -56,6 +56,14 @@ class ScalarLog:
         self.write(step)
         return True
 
+    @property
+    def writer(self) -> Any:
+        if self._writer is None:
+            from torch.utils.tensorboard import SummaryWriter  # deferred: a slow import, off start-up
+
+            self._writer = SummaryWriter(str(self.log_dir), filename_suffix=f".{self.suffix}")
+        return self._writer
+
     def write(self, step: int) -> None:
         for k, total in self._sums.items():
             self.writer.add_scalar(tag(k), total / self._counts[k], step)
@@ -64,4 +72,5 @@ class ScalarLog:
         self.writer.flush()
 
     def close(self) -> None:
-        self.writer.close()
+        if self._writer is not None:
+            self._writer.close()

@@ -56,16 +56,14 @@ def check_device(device: str, option: str) -> None:
 
 
 def prepare_device(device: str) -> torch.device:
-    """``device`` as a torch device; on CUDA, allow TF32 for fp32 matmuls and convolutions (about
-    3 decimal digits, as the PyTorch default for cuDNN convolutions already is) for this process."""
+    """``device`` as a torch device; on CUDA, allow TF32 (10-bit mantissa) for the process's fp32
+    matmuls (oneDNN's on the CPU too, where it has TF32: a CUDA learner's are on the GPU) and cuDNN
+    convolutions and LSTMs. Set through the long-standing switches, which keep torch's old and new
+    views of the setting in step (mixing the two APIs makes torch raise when it reads them)."""
     dev = torch.device(device)
     if dev.type == "cuda":
-        if hasattr(torch.backends.cuda.matmul, "fp32_precision"):  # torch >= 2.9; the old flags warn
-            torch.backends.cuda.matmul.fp32_precision = "tf32"
-            torch.backends.cudnn.conv.fp32_precision = "tf32"
-        else:
-            torch.backends.cuda.matmul.allow_tf32 = True
-            torch.backends.cudnn.allow_tf32 = True
+        torch.set_float32_matmul_precision("high")
+        torch.backends.cudnn.allow_tf32 = True  # torch's default, stated
     return dev
 
 
@@ -179,7 +177,7 @@ class LearnerConfig:
             raise ValueError(f"demo_fraction must be in [0, 1], got {self.demo_fraction}")
         if self.net.critic_input == "state" and self.sac.share_encoder:
             raise ValueError("sac.share_encoder needs the image critic (net.critic_input image)")
-        check_device(self.device, "device")
+        check_device(self.device, "--device")
         if self.samples_per_insert <= 0 or self.min_steps < 0 or self.error_buffer < 0:
             raise ValueError("samples_per_insert must be > 0, min_steps and error_buffer >= 0")
 

@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -44,23 +47,60 @@ OWN_FILES = ("sac.py", "trainer.py", "batch.py", "tensors.py")
 """The update loop's own modules: none of them may wait for the device between metric reads."""
 
 
-def filled_trainer(device: str = "cpu", episodes: int = 6, **kw) -> Trainer:
+def filled_trainer(device: str = "cpu", episodes: int = 6, same_length: bool = False, **kw) -> Trainer:
     trainer = build_trainer(tiny_learner_config(Path("unused"), ServiceConfig(), device=device, **kw))
     for k in range(episodes):
-        trainer.insert(learner_episode(k, T=10 + k % 3, demo=k == 0))
+        trainer.insert(learner_episode(k, T=10 if same_length else 10 + k % 3, demo=k == 0))
     return trainer
 
 
-@pytest.fixture
-def no_tf32():
-    """fp32 matmuls, convolutions and cuDNN LSTMs in full precision for the test, restored after."""
-    knobs = [torch.backends.cuda.matmul, torch.backends.cudnn.conv, torch.backends.cudnn.rnn]
-    saved = [k.fp32_precision for k in knobs]
-    for k in knobs:
-        k.fp32_precision = "ieee"
+READS = ("item", "tolist", "cpu", "numpy", "__float__", "__int__", "__bool__", "__index__")
+"""Tensor methods that bring a value to the host: on a GPU each one waits for the queued work."""
+
+
+@contextmanager
+def reads_back(monkeypatch: pytest.MonkeyPatch, device: str) -> Iterator[list[str]]:
+    """Every value read from a ``device`` tensor by the update loop's own modules (``OWN_FILES``) while
+    inside, as "file:line method"."""
+    seen: list[str] = []
+
+    def spy(name: str, original):
+        def read(self, *args, **kwargs):
+            caller = sys._getframe(1)
+            where = Path(caller.f_code.co_filename).name
+            if self.device.type == device and where in OWN_FILES:
+                seen.append(f"{where}:{caller.f_lineno} {name}")
+            return original(self, *args, **kwargs)
+
+        return read
+
+    with monkeypatch.context() as m:
+        for name in READS:
+            m.setattr(torch.Tensor, name, spy(name, getattr(torch.Tensor, name)))
+        yield seen
+
+
+@pytest.fixture(autouse=True)
+def _restore_precision() -> Iterator[None]:
+    """A CUDA trainer allows TF32 for the process (``prepare_device``): put it back for later tests."""
+    matmul, cudnn = torch.get_float32_matmul_precision(), torch.backends.cudnn.allow_tf32
     yield
-    for k, v in zip(knobs, saved, strict=True):
-        k.fp32_precision = v
+    torch.set_float32_matmul_precision(matmul)
+    torch.backends.cudnn.allow_tf32 = cudnn
+
+
+@contextmanager
+def full_fp32() -> Iterator[None]:
+    """fp32 matmuls, convolutions and cuDNN LSTMs in full precision inside (a CUDA learner allows
+    TF32 for its process), restored after."""
+    matmul, cudnn = torch.get_float32_matmul_precision(), torch.backends.cudnn.allow_tf32
+    torch.set_float32_matmul_precision("highest")
+    torch.backends.cudnn.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(matmul)
+        torch.backends.cudnn.allow_tf32 = cudnn
 
 
 def actor_output(actor: torch.nn.Module, seed: int = 3) -> torch.Tensor:
@@ -81,7 +121,7 @@ def actor_output(actor: torch.nn.Module, seed: int = 3) -> torch.Tensor:
 
 @pytest.mark.parametrize("bad", ["gpu", "cuda0", "cpu:1", "CUDA", "", "mps", "cuda:x"])
 def test_a_device_name_that_is_not_cpu_or_cuda_is_refused_in_one_line(bad):
-    with pytest.raises(ValueError, match=r"^device must be cpu, cuda or cuda:N, not ") as err:
+    with pytest.raises(ValueError, match=r"^--device must be cpu, cuda or cuda:N, not ") as err:
         LearnerConfig(device=bad)
     assert "\n" not in str(err.value)
     with pytest.raises(ValueError, match=r"^--learner-device must be cpu, cuda or cuda:N"):
@@ -93,7 +133,7 @@ def test_a_device_name_that_is_not_cpu_or_cuda_is_refused_in_one_line(bad):
 def test_cuda_where_there_is_none_is_refused_naming_the_option(name):
     with pytest.raises(ValueError, match=rf"^--learner-device '{name}': CUDA is unavailable here .*use cpu$"):
         RunConfig(learner_device=name)
-    with pytest.raises(ValueError, match=rf"^device '{name}': CUDA is unavailable here"):
+    with pytest.raises(ValueError, match=rf"^--device '{name}': CUDA is unavailable here"):
         LearnerConfig(device=name)
 
 
@@ -210,9 +250,7 @@ def test_on_cpu_keeps_cpu_tensors_and_the_containers():
 
 @pytest.mark.parametrize("trained_on", DEVICES)
 @pytest.mark.parametrize("resumed_on", DEVICES)
-def test_a_checkpoint_resumes_on_another_device_with_the_same_actor(
-    tmp_path, trained_on, resumed_on, no_tf32
-):
+def test_a_checkpoint_resumes_on_another_device_with_the_same_actor(tmp_path, trained_on, resumed_on):
     trainer = filled_trainer(trained_on)
     for _ in range(3):
         assert trainer.step() is not None
@@ -226,7 +264,11 @@ def test_a_checkpoint_resumes_on_another_device_with_the_same_actor(
     resumed = filled_trainer(resumed_on, episodes=0)
     assert checkpoint.restore_trainer(tmp_path, resumed).version == 2
     assert resumed.updates == 3 and len(resumed.replay) == len(trainer.replay)
-    assert torch.allclose(actor_output(resumed.sac.actor), actor_output(trainer.sac.actor), atol=1e-5)
+    # the same weights bit for bit; outputs as close as fp32 kernels of two devices get (cuDNN's may differ)
+    with full_fp32():
+        assert torch.allclose(
+            actor_output(resumed.sac.actor), actor_output(trainer.sac.actor), rtol=1e-4, atol=1e-4
+        )
     state, ref = resumed.sac.actor.state_dict(), trainer.sac.actor.state_dict()
     assert all(torch.equal(state[k].cpu(), ref[k].cpu()) for k in ref)
     assert resumed.sac.log_alpha.device.type == resumed_on
@@ -236,14 +278,15 @@ def test_a_checkpoint_resumes_on_another_device_with_the_same_actor(
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_published_weights_are_numpy_on_the_cpu_and_act_like_the_trained_actor(device, no_tf32):
+def test_published_weights_are_numpy_on_the_cpu_and_act_like_the_trained_actor(device):
     trainer = filled_trainer(device)
     trainer.step()
     tensors = trainer.policy_tensors()
     assert all(isinstance(v, np.ndarray) for v in tensors.values())
     actor = build_actor(TINY_NET)
     actor.load_state_dict({k: torch.from_numpy(v) for k, v in tensors.items()})
-    assert torch.allclose(actor_output(actor), actor_output(trainer.sac.actor), atol=1e-5)
+    with full_fp32():
+        assert torch.allclose(actor_output(actor), actor_output(trainer.sac.actor), rtol=1e-4, atol=1e-4)
 
 
 def _leaves(x):
@@ -308,15 +351,42 @@ def test_a_gpu_run_resumes_on_the_cpu_and_back(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------
-# CUDA only: no waiting for the device inside the update loop
+# no waiting for the device inside the update loop
 # ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_updates_between_metric_reads_read_nothing_back_from_the_device(device, monkeypatch):
+    eager = filled_trainer(device)
+    eager.settings = dataclasses.replace(eager.settings, metrics_every=1)  # a GPU's default reads every N
+    with reads_back(monkeypatch, device) as reads:
+        assert eager.step() is not None
+    assert any(r.startswith("sac.py:") for r in reads)  # each update's floats: what a GPU must not do
+
+    lazy = filled_trainer(device)
+    lazy.settings = dataclasses.replace(lazy.settings, metrics_every=3)
+    lazy.step()  # update 1
+    with reads_back(monkeypatch, device) as reads:
+        unread = lazy.step()  # update 2
+    assert reads == [] and set(unread) == {"batch_demo_share", "batch_reward_transitions"}
+    with reads_back(monkeypatch, device) as reads:
+        info = lazy.step()  # update 3 reads the means of 1 to 3: the window's read is the only one
+    assert reads and {r.split(":")[0] for r in reads} == {"trainer.py"} and "critic_loss" in info
+
+
+def test_prepare_device_leaves_the_cpu_precision_alone():
+    before = torch.get_float32_matmul_precision()
+    filled_trainer("cpu", episodes=0)
+    assert torch.get_float32_matmul_precision() == before
 
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not CUDA, reason=f"CUDA is absent here (torch {torch.__version__})")
-def test_updates_between_metric_reads_never_wait_for_the_gpu_in_the_loops_own_code():
-    trainer = filled_trainer("cuda", tensorboard_every=4)
+def test_cuda_updates_between_metric_reads_never_synchronise_in_the_loops_own_code():
+    # equal lengths: no padding, so the encoders' masked path (its own synchronisations) stays out
+    trainer = filled_trainer("cuda", same_length=True, tensorboard_every=4)
     assert trainer.settings.metrics_every == 4 and trainer.sac.device.type == "cuda"
+    assert torch.get_float32_matmul_precision() == "high" and torch.backends.cudnn.allow_tf32  # TF32
     assert trainer.step() is not None  # update 1 warms up cuDNN, cuBLAS and the allocators
     torch.cuda.synchronize()
     with warnings.catch_warnings(record=True) as caught:
@@ -328,8 +398,9 @@ def test_updates_between_metric_reads_never_wait_for_the_gpu_in_the_loops_own_co
             torch.cuda.set_sync_debug_mode("default")
     assert all(set(info) == {"batch_demo_share", "batch_reward_transitions"} for info in unread)
     syncs = [(Path(w.filename).name, w.lineno) for w in caught if "synchronizing" in str(w.message)]
-    print("host synchronisations outside the loop's own modules:", sorted(set(syncs)))
-    assert not [s for s in syncs if s[0] in OWN_FILES]
+    print("host synchronisations in two updates (file, line):", sorted(set(syncs)))  # pytest -rP shows it
+    # sac.py's lines also carry what its network calls and backward passes do; these call nothing
+    assert not [s for s in syncs if s[0] in ("trainer.py", "batch.py", "tensors.py")]
     info = trainer.step()  # update 4 reads the means of updates 1 to 4
     assert np.isfinite(info["critic_loss"]) and "alpha" in info
 

@@ -198,8 +198,9 @@ class Trainer:
         """One SAC update on a freshly drawn batch if the limiter allows it now (None otherwise): the
         update's losses and statistics, plus the batch's demonstration share and rewarded transitions.
 
-        With ``metrics_every`` N > 1 the losses and statistics come every N-th update only, as means
-        over the N (``MetricsWindow``); the other updates give the batch's two numbers alone."""
+        With ``metrics_every`` N > 1 the losses and statistics come every N-th update only (by the
+        update count), as means over the updates since the last read (``MetricsWindow``); the other
+        updates give the batch's two numbers alone."""
         s = self.settings
         with self.guard:
             ready = self.replay.num_episodes > 0 and self.limiter.can_sample()
