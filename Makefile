@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 ARGS ?=
 
-.PHONY: run test install lint fmt docs bench-transport clean
+.PHONY: run test test-fast install lint fmt docs bench-transport clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || python3 -m venv $(VENV)
@@ -20,6 +20,11 @@ run: $(STAMP)
 # Lint, architecture contracts, then the whole test suite.
 test: $(STAMP) lint
 	$(PY) -m pytest $(ARGS)
+
+# The inner loop: unit, contract and integration tests less the ones marked slow (under 3 minutes on
+# an idle 2-core machine); CI runs `make test`, everything.
+test-fast: $(STAMP)
+	$(PY) -m pytest tests/unit tests/contract tests/integration -m "not slow" $(ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "services.bench.audit",
         "replay augmented episodes through physics and report their validity",
     ),
+    "play": ("services.play", "render a trained policy or recorded episodes to an MP4 or GIF"),
     "demos": ("services.actor.demos", "record scripted demonstrations of a task to an MCAP file"),
     "recording": (
         "services.recording_check",

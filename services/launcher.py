@@ -45,6 +45,8 @@ from services.run_config import PRESETS, RunConfig, read_resume, recording_metad
 from services.run_zenoh import router_config, secure
 from services.status_board import SUMMARY, StatusBoard, end_of_run, reached_env_steps, read_run_history
 from services.supervision import RestartPolicy, RestartSettings
+from services.tracking import Tracking
+from services.tracking import check as check_tracking
 
 log = logging.getLogger(__name__)
 
@@ -380,6 +382,7 @@ def prepare(cfg: RunConfig, given: Collection[str] = ()) -> Prepared:
     run_dir = cfg.run_dir or Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{cfg.task}-{cfg.variant}"
     _check_run_dir(run_dir, fresh=cfg.resume is None)
     cfg = dataclasses.replace(cfg, run_dir=run_dir)
+    check_tracking(cfg)
     try:  # before anything is written: a clone that does not fit the learner stops the run here
         check_init_actor(cfg)
     except ValueError as exc:
@@ -443,7 +446,9 @@ def run(cfg: RunConfig | Prepared, given: Collection[str] = ()) -> int:
     failed = False
     start = _starter(cfg, router, shutdown)
     summary: dict = {}
+    tracking = None
     try:
+        tracking = Tracking(cfg, run_dir, [s.instance for s in specs])  # RUN_DIR/tb; W&B with --track
         procs = {s.instance: start(s) for s in specs}
         topology = "in-process" if cfg.in_process else cfg.listen
         log.info("started", extra={"run_dir": str(run_dir), "children": len(procs), "listen": topology})
@@ -463,6 +468,8 @@ def run(cfg: RunConfig | Prepared, given: Collection[str] = ()) -> int:
         router.close()
         render_curves(run_dir)
         metrics.close()
+        if tracking is not None:
+            tracking.close()
     print(end_of_run(run_dir, summary, shutdown.reason, authenticated=cfg.authenticate), flush=True)
     return 1 if failed else 0
 

@@ -22,7 +22,7 @@ from services.common.metrics import DEFAULT_PORTS
 from services.evaluator.config import EvaluatorConfig
 from services.learner import init_actor
 from services.learner.config import PRESETS as LEARNER_PRESETS
-from services.run_config import GASV2_PRESETS, SERVICE_MODULES, SERVICE_ORDER, RunConfig
+from services.run_config import SERVICE_MODULES, SERVICE_ORDER, RunConfig
 from services.variants import network_group, variant
 
 
@@ -66,11 +66,14 @@ def service_settings(run: RunConfig, run_dir: Path, service: str, index: int) ->
     )
 
 
-def actor_config(run: RunConfig, index: int, service: ServiceConfig) -> ActorConfig:
+def actor_config(
+    run: RunConfig, index: int, service: ServiceConfig, run_dir: Path | None = None
+) -> ActorConfig:
     """Actor ``index``: the learned policy when the run has a learner, here or on a host it connects
     to (random otherwise),
     demonstrations and the random prefill from actor 0 only (not again on resume or restart), the depth image where the variant
-    observes it, and a seed base that moves on with every resume (``proto.seeds``)."""
+    observes it, a seed base that moves on with every resume (``proto.seeds``), and its TensorBoard
+    points in RUN_DIR/tb."""
     return ActorConfig(
         task=run.task,
         index=index,
@@ -80,6 +83,7 @@ def actor_config(run: RunConfig, index: int, service: ServiceConfig) -> ActorCon
         random_steps=run.resolved_random_steps() if index == 0 and run.resume is None else 0,
         depth_image=variant(run.variant).depth_image,
         follow_gate=run.follow_gate,
+        tensorboard_dir=None if run_dir is None else run_dir / "tb",
         service=service,
     )
 
@@ -101,31 +105,21 @@ def augmenter_config(run: RunConfig, service: ServiceConfig) -> AugmenterConfig:
 
 
 def learner_preset(run: RunConfig) -> str:
-    """The learner preset of the run: its GASv2 counterpart (``GASV2_PRESETS``; ``RunConfig`` checked
-    that there is one) for the GASv2 variants, ``learner_preset`` itself for the Equi-RSAC ones
-    (ValueError naming the choices if it is not one of theirs)."""
-    if variant(run.variant).algorithm == "gasv2":
-        return GASV2_PRESETS[run.learner_preset]
-    sac = sorted(k for k, c in LEARNER_PRESETS.items() if c.algorithm != "gasv2")
-    if run.learner_preset not in sac:
-        raise ValueError(f"learner preset {run.learner_preset!r} has no {variant(run.variant).algorithm} "
-                         f"learner; choose one of {sac}")  # fmt: skip
-    return run.learner_preset
+    """The learner preset of the run (``learner.config.PRESETS``): ``learner_preset`` in the table of
+    the variant's algorithm (``RunConfig`` checked that it is there)."""
+    return run.learner_preset_name()
 
 
 def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any:
-    """The run's learner preset (``learner_preset``) with the task's group, the variant's
-    observation, the run's budget and seed, one torch thread (it shares the cores with actors and
-    augmenter; two OpenMP threads on a busy 2-core machine wait on each other), state under
-    RUN_DIR/learner, resumed on --resume. ``learner_args`` change the preset before all that, so the
-    run's own settings win."""
+    """The run's learner preset (``learner_preset``) with the variant's observation and the task's
+    group for its algorithm (``AlgorithmConfig.for_run``), the run's budget and seed, one torch thread
+    (it shares the cores with actors and augmenter; two OpenMP threads on a busy 2-core machine wait
+    on each other), state under RUN_DIR/learner, resumed on --resume. ``learner_args`` change the
+    preset before all that, so the run's own settings win."""
     preset = override(LEARNER_PRESETS[learner_preset(run)], run.learner_args, "--learner-args")
     return dataclasses.replace(
         preset,
-        net=dataclasses.replace(preset.net, group=network_group(run.task))
-        if preset.algorithm != "gasv2"
-        else preset.net,
-        observation=variant(run.variant).observation,
+        algorithm=preset.algorithm.for_run(variant(run.variant).observation, network_group(run.task)),
         threads=1,
         device=run.learner_device,
         max_env_steps=run.env_steps,
@@ -163,6 +157,8 @@ def evaluator_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> E
         final_episodes=run.final_eval_episodes,
         depth_image=variant(run.variant).depth_image,
         first_gate_wait=math.inf if learner else EvaluatorConfig.first_gate_wait,
+        tensorboard_dir=run_dir / "tb",
+        videos=run.eval_videos,
         service=service,
     )
 
@@ -173,7 +169,7 @@ def config_for(run: RunConfig, run_dir: Path, service: str, index: int) -> Any:
         raise ValueError(f"unknown service {service!r}; choose from {SERVICE_ORDER}")
     settings = service_settings(run, run_dir, service, index)
     if service == "actor":
-        return actor_config(run, index, settings)
+        return actor_config(run, index, settings, run_dir)
     if service == "augmenter":
         return augmenter_config(run, settings)
     if service == "learner":

@@ -14,8 +14,8 @@ import typeguard
 
 from proto.episode import DSA_TASKS
 from services.common.bus.zenoh_derive import check_run_file
-from services.learner.config import PRESETS as LEARNER_PRESETS
-from services.learner.config import check_device
+from services.learner import init_actor
+from services.learner.config import check_device, learner_presets, preset_name
 from services.tasks import TASK_CLASSES
 from services.variants import VARIANTS, check_task
 
@@ -25,12 +25,12 @@ SERVICE_MODULES = {s: f"services.{s}.main" for s in SERVICE_ORDER}
 
 
 MEA_ON = ("", "demos", "successes", "all")
-GASV2_PRESETS = {"paper": "gasv2", "cpu-small": "gasv2-cpu-small", "smoke": "gasv2-smoke"}
-"""The GASv2 learner preset a run's ``learner_preset`` stands for with a GASv2 variant."""
-RANDOM_PREFILL = {"paper": 9_000, "cpu-small": 1_000, "smoke": 0}
-"""GASv2 runs' random prefill per learner preset: the reference's 9e3 random steps (`low_oracle3`,
-beside 10 oracle demos) on the paper's 420K; 1,000 on the CPU budget of 16-20K env steps."""
+RANDOM_PREFILL = {"gasv2": 9_000, "gasv2-cpu-small": 1_000, "gasv2-smoke": 0}
+"""Random prefill per learner preset (``learner.config.PRESETS`` names; none for the others): the
+GASv2 reference's 9e3 random steps (`low_oracle3`, beside 10 oracle demos) on the paper's 420K; 1,000
+on the CPU budget of 16-20K env steps."""
 CPU_LEARNER_PRESETS = ("cpu-small", "cpu-small-state")
+WANDB_MODES = ("offline", "online")
 """Learner presets for two CPU cores: MEA on online successes too, 64 rotated copies of successes."""
 
 
@@ -67,6 +67,9 @@ class RunConfig:
     final_eval_episodes: int = 50
     """Episodes of the evaluation at the env-step budget (the same held-out seed sequence, its first
     final_eval_episodes seeds)."""
+    eval_videos: int = 2
+    """Episodes filmed (MP4 in RUN_DIR/eval/videos and TensorBoard) of the 1st evaluation, every 5th
+    after it and the one at the budget. 0: none (docs/watching-training.md)."""
     record: bool = True
     """Record every raw episode to RUN_DIR/episodes/raw-<n>-<k>.mcap (n: resume count; k: segment,
     each a complete MCAP file)."""
@@ -142,6 +145,11 @@ class RunConfig:
     """Additional `module:function` entries to start as services (plugins; used by tests)."""
     log_format: str = "text"
     """Log format of the launcher and its services: json or text."""
+    track: bool = False
+    """Also send RUN_DIR/tb to Weights & Biases (pip install 'mea-rl[track]'); the W&B run id is kept in
+    RUN_DIR/wandb-run-id, so a resume continues the same W&B run."""
+    wandb_mode: str = "offline"
+    """With --track: offline (files under RUN_DIR/wandb, `wandb sync` uploads them) or online."""
     final_eval_seconds: float = 900.0
     """At the budget, how long to wait for the evaluation of the last weights (final_eval_episodes
     episodes) before stopping."""
@@ -177,9 +185,12 @@ class RunConfig:
         """``random_steps``, else the learner preset's prefill for the variant (``RANDOM_PREFILL``)."""
         if self.random_steps is not None:
             return self.random_steps
-        if VARIANTS[self.variant].algorithm != "gasv2":
-            return 0
-        return RANDOM_PREFILL.get(self.learner_preset, 0)
+        return RANDOM_PREFILL.get(self.learner_preset_name(), 0)
+
+    def learner_preset_name(self) -> str:
+        """The learner preset (``learner.config.PRESETS``) that ``learner_preset`` names in the table of
+        the variant's algorithm."""
+        return preset_name(VARIANTS[self.variant].algorithm, self.learner_preset)
 
     def resolved_mea_on(self) -> str:
         """What the mea variant runs MEA on: ``mea_on``, else the learner preset's default (the CPU
@@ -206,13 +217,14 @@ class RunConfig:
         check_task(self.variant, self.task)
         self._check_learner_preset()
         check_device(self.learner_device, "--learner-device")
-        if VARIANTS[self.variant].algorithm == "gasv2" and self.learner_preset not in GASV2_PRESETS:
-            raise ValueError(f"learner preset {self.learner_preset!r} has no gasv2 learner; choose one of "
-                             f"{sorted(GASV2_PRESETS)}")  # fmt: skip
         if (self.demos is not None and self.demos < 0) or (
             self.random_steps is not None and self.random_steps < 0
         ):
             raise ValueError("demos and random_steps must be >= 0")
+        if self.eval_videos < 0:
+            raise ValueError("--eval-videos must be >= 0 (0: no evaluation videos)")
+        if self.wandb_mode not in WANDB_MODES:
+            raise ValueError(f"--wandb-mode must be one of {', '.join(WANDB_MODES)}, not {self.wandb_mode!r}")
         if self.env_steps < 0 or min(self.eval_every, self.eval_episodes, self.final_eval_episodes) < 1:
             raise ValueError("env_steps must be >= 0, eval_every, eval_episodes and final_eval_episodes >= 1")
         unknown = set(self.services) - set(SERVICE_ORDER)
@@ -223,10 +235,8 @@ class RunConfig:
         check_run_file(self.zenoh_config, self.listen, self.connect, self.namespace, self.in_process)
 
     def _check_learner_preset(self) -> None:
-        """An Equi-RSAC variant's preset must name an Equi-RSAC learner (GASv2 ones: below)."""
-        if VARIANTS[self.variant].algorithm == "gasv2":
-            return
-        choices = [k for k, c in LEARNER_PRESETS.items() if c.algorithm != "gasv2"]
+        """The preset must be one of the variant's algorithm's (``learner.config.learner_presets``)."""
+        choices = learner_presets(VARIANTS[self.variant].algorithm)
         if self.learner_preset not in choices:
             raise ValueError(f"--learner-preset must be one of {', '.join(choices)} with --variant "
                              f"{self.variant}, not {self.learner_preset!r}")  # fmt: skip
@@ -237,7 +247,7 @@ class RunConfig:
         if self.resume is not None:
             raise ValueError("--init-actor starts a fresh run; a resumed run (--resume) continues from its "
                              "learner's checkpoint")  # fmt: skip
-        if VARIANTS[self.variant].algorithm == "gasv2":
+        if not init_actor.supports(VARIANTS[self.variant].algorithm):
             raise ValueError(f"--init-actor applies to the Equi-RSAC variants, not {self.variant!r}")
 
 
@@ -250,7 +260,8 @@ def recording_metadata(cfg: RunConfig) -> dict[str, str]:
 
 
 _MACHINE_FIELDS = ("listen", "connect", "metrics_port", "metrics_addr", "duration_seconds", "stop_grace_seconds",
-                   "log_format", "final_eval_seconds", "in_process", "zenoh_config", "learner_device")  # fmt: skip
+                   "log_format", "final_eval_seconds", "in_process", "zenoh_config", "learner_device", "track",
+                   "wandb_mode")  # fmt: skip
 """Fields a resumed run takes from the command line rather than from the run's saved config."""
 
 

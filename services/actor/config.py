@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 from proto.seeds import ACTOR_SEED_STRIDE, RESTART_SEED_STRIDE
 from services.common.config import ServiceConfig
@@ -59,6 +60,13 @@ class ActorConfig:
     resend_seconds: float = 300.0
     """Publish an episode again when no ack named it for this long (it is also published again at
     once when an augmenter or learner starts or restarts)."""
+    tensorboard_dir: Path | None = None
+    """Write charts/episodic_return, charts/success, charts/weights_lag and perf/env_steps_per_second
+    here (in its own directory, RUN_DIR/tb/<instance>), means over tensorboard_every episodes after the
+    demonstrations, against the learner's env steps (its own with --no-follow-gate); `mea run`:
+    RUN_DIR/tb. None: not written."""
+    tensorboard_every: int = 1
+    """Episodes per TensorBoard point (1: each episode, as CleanRL writes them)."""
     service: ServiceConfig = ServiceConfig()
     """Identity, transport, metrics and logs."""
 
@@ -67,6 +75,8 @@ class ActorConfig:
             raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
         if self.incarnation < 0 or self.random_steps < 0:
             raise ValueError("incarnation and random_steps must be >= 0")
+        if self.tensorboard_every < 1:
+            raise ValueError("tensorboard_every must be >= 1")
         if self.unacked_limit < 1 or self.resend_seconds <= 0:
             raise ValueError("unacked_limit must be >= 1 and resend_seconds > 0")
         if self.policy not in POLICIES:

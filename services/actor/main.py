@@ -23,6 +23,11 @@ Policy input: a learned policy's weights say which observation it was trained on
 or ``depth`` (the rendered Equi-RSAC depth image, ``policy_input``). A ``depth`` policy needs the env
 to render that image (``--depth-image``); an actor without it refuses such weights like any blob that
 does not fit (logged, ``mea_actor_bad_weights_total``), keeps the weights it has and runs on.
+
+TensorBoard (``--tensorboard-dir``; `mea run`: RUN_DIR/tb): every ``--tensorboard-every`` episodes
+after the demonstrations, the means of charts/episodic_return, charts/success and charts/weights_lag
+(versions the learner moved on by while an episode ran, seen at the next pull) and
+perf/env_steps_per_second over those episodes, at the learner's env steps (``EpisodeScalars``).
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from services.actor.rollout import Actor
 from services.common import config
 from services.common.replay_gate import GateFollower
 from services.common.runtime import ServiceContext
+from services.common.scalars import ScalarLog
 from services.common.weights import WeightsClient
 
 log = logging.getLogger(__name__)
@@ -153,6 +159,39 @@ class Delivery:
         self.watch.close()
 
 
+class EpisodeScalars:
+    """The actor's TensorBoard points: means over ``tensorboard_every`` episodes of their return,
+    success and weights lag, and the env steps per second over those episodes (waits included), at
+    the learner's env steps (its gate's; an actor that does not follow the gate: its own). Episodes
+    that end before a gate is seen are not counted: their env step is unknown (a resumed run's
+    actors would otherwise write at steps before the run's). Without a ``tensorboard_dir`` it writes
+    nothing."""
+
+    def __init__(self, cfg: ActorConfig, instance: str, gate: GateFollower | None, env_steps: int) -> None:
+        self.log = None
+        if cfg.tensorboard_dir is not None:
+            self.log = ScalarLog(cfg.tensorboard_dir, cfg.tensorboard_every, instance)
+        self.gate = gate
+        self.t0, self.steps0 = time.monotonic(), env_steps
+
+    def episode(self, b: EpisodeBuilder, env_steps: int, lag: int | None) -> None:
+        step = env_steps if self.gate is None else self.gate.tracker.env_steps
+        if self.log is None or step < 0:
+            return
+        values = {"charts/episodic_return": float(sum(b.rewards)), "charts/success": float(b.success)}
+        if lag is not None:
+            values["charts/weights_lag"] = float(lag)
+        if self.log.due:  # a rate over the whole window, added once
+            now = time.monotonic()
+            values["perf/env_steps_per_second"] = (env_steps - self.steps0) / max(now - self.t0, 1e-9)
+            self.t0, self.steps0 = now, env_steps
+        self.log.add(values, step)
+
+    def close(self) -> None:
+        if self.log is not None:
+            self.log.close()
+
+
 def _load_weights(
     weights: WeightsClient, policy, mx, counts: dict, depth_image: bool = False, task: str = ""
 ) -> None:
@@ -222,17 +261,20 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
                 mx["failed_demos"].inc()
         if demos < cfg.demos:
             log.warning("fewer demonstrations than requested", extra={"demos": demos, "requested": cfg.demos})
-        k = 0
+        k, lag = 0, None
+        scalars = EpisodeScalars(cfg, ctx.instance, gate, counts["env_steps"])
         while (cfg.episodes == 0 or k < cfg.episodes) and not ctx.shutdown.is_set():
             delivery.tend()
             if gate is not None:
                 mx["gate_wait"].inc(gate.wait(ctx.shutdown, delivery.tend))
             if weights is not None:
+                acted = policy.version
                 _load_weights(weights, policy, mx, counts, cfg.depth_image, cfg.task)
                 if not policy.ready:  # no weights yet: wait for the learner's first version
                     ctx.shutdown.wait(0.2)
                     continue
                 ctx.policy_version = policy.version
+                lag = None if acted < 0 else policy.version - acted
             if ctx.shutdown.is_set():
                 break
             try:
@@ -244,7 +286,9 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
                 ctx.shutdown.wait(0.5)
                 continue
             publish(episode)
+            scalars.episode(episode, counts["env_steps"], lag)
             k += 1
+        scalars.close()
         delivery.flush(cfg.resend_seconds)  # a stop by SIGTERM returns at once
         if gate is not None:
             gate.close()

@@ -82,16 +82,17 @@ class ImitationBenchConfig:
     """Print exactly one JSON object instead of tables."""
 
     def __post_init__(self) -> None:
-        from services.learner.config import PRESETS as LEARNER_PRESETS
+        from services.learner import init_actor
+        from services.learner.config import learner_presets
         from services.tasks import GENERAL_TASKS
         from services.variants import VARIANTS
 
         if self.task not in GENERAL_TASKS:
             raise ValueError(f"--task must be one of {', '.join(GENERAL_TASKS)}, not {self.task!r}")
-        sac = sorted(k for k, c in LEARNER_PRESETS.items() if c.algorithm != "gasv2")
-        if self.variant not in VARIANTS or VARIANTS[self.variant].algorithm == "gasv2":
-            fits = [k for k, v in VARIANTS.items() if v.algorithm != "gasv2"]
+        fits = [k for k, v in VARIANTS.items() if init_actor.supports(v.algorithm)]  # an actor to clone into
+        if self.variant not in fits:
             raise ValueError(f"--variant must be one of {', '.join(fits)}, not {self.variant!r}")
+        sac = learner_presets(VARIANTS[self.variant].algorithm)
         if self.learner_preset not in sac:
             raise ValueError(f"--learner-preset must be one of {', '.join(sac)}, not {self.learner_preset!r}")
         if not self.demos or min(self.demos) < 1:
@@ -160,8 +161,9 @@ def demo_replay(demos: list, run, learner) -> tuple[Any, dict[str, int]]:
         for d in demos
     ]
     capacity = sum(k * d.num_steps for k, d in zip(per_demo, demos, strict=True))
-    replay = SequenceReplay(max(capacity, learner.seq_len), image_size=learner.net.image_size,
-                            seq_len=learner.seq_len, channels=learner.net.in_channels, seed=0,
+    net = learner.algorithm.net
+    replay = SequenceReplay(max(capacity, learner.seq_len), image_size=net.image_size,
+                            seq_len=learner.seq_len, channels=net.in_channels, seed=0,
                             max_episodes=max(1, sum(per_demo)))  # fmt: skip
     episodes = 0
     for d in demos:
@@ -257,9 +259,10 @@ def clone(replay, learner, seed: int, updates: int, batch: int, tag: str):
     from services.learner.core.networks import build_actor
 
     torch.manual_seed(seed)  # as build_trainer: the actor is the first network drawn
-    actor = build_actor(learner.net)
-    settings = CloneSettings(batch_size=batch, lr=learner.sac.lr, demo_fraction=learner.demo_fraction,
-                             successes_as_demos=learner.successes_as_demos, trim=learner.trim_batches)  # fmt: skip
+    algo = learner.algorithm
+    actor = build_actor(algo.net)
+    settings = CloneSettings(batch_size=batch, lr=algo.sac.lr, demo_fraction=learner.demo_fraction,
+                             successes_as_demos=learner.successes_as_demos, trim=algo.trim_batches)  # fmt: skip
     cloner = Cloner(actor, replay, np.random.default_rng(seed), settings)
     held = to_batch(replay.sample(HELD_EPISODES, np.random.default_rng([seed, 1]), trim=True))
     before = held_loss(actor, held)
@@ -276,8 +279,9 @@ def clone_blob(actor, learner, run_id: str):
     from proto.weights import WeightsBlob
     from services.learner.core.policy import PolicySpec, actor_tensors
 
-    spec = PolicySpec(learner.net, learner.observation).to_json()
-    return WeightsBlob.create(0, learner.algorithm, run_id, actor_tensors(actor), spec)
+    algo = learner.algorithm
+    spec = PolicySpec(algo.net, algo.observation).to_json()
+    return WeightsBlob.create(0, algo.name, run_id, actor_tensors(actor), spec)
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -350,7 +354,7 @@ def run(cfg: ImitationBenchConfig) -> dict:
             rows.append(row)
         del replay
     meta = {"task": cfg.task, "variant": cfg.variant, "learner_preset": cfg.learner_preset,
-            "group": learner.net.group, "observation": learner.observation, "run_seed": cfg.run_seed,
+            "group": learner.algorithm.net.group, "observation": learner.algorithm.observation, "run_seed": cfg.run_seed,
             "expert": expert,
             "rotations": rc.resolved_success_rotations(), "batch": cfg.batch, "updates": cfg.updates,
             "eval_episodes": cfg.eval_episodes, "demo_seeds": [int(e.seed) for e in stream],

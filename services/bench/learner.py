@@ -30,7 +30,7 @@ import statistics
 import sys
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -51,11 +51,13 @@ from services.bench.report import emit
 from services.learner.config import PRESETS as LEARNER_PRESETS
 from services.learner.config import check_device, prepare_device
 from services.learner.core.batch import to_batch
+from services.learner.core.gasv2.algorithm import GasV2Config
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.learner.core.privileged import STATE_DIM
 from services.learner.core.replay import SequenceReplay, public_reference_bytes
-from services.learner.core.sac import RecurrentSAC
+from services.learner.core.sac.agent import RecurrentSAC
+from services.learner.core.sac.algorithm import SacConfig
 
 CONSUMER = "bench-consumer"
 
@@ -93,9 +95,10 @@ class LearnerBenchConfig:
         if self.updates < 1:
             raise ValueError(f"--updates must be >= 1, got {self.updates}")
         for p in self.gasv2_presets:
-            if LEARNER_PRESETS.get(p, LEARNER_PRESETS["paper"]).algorithm != "gasv2":
-                gasv2 = sorted(k for k, v in LEARNER_PRESETS.items() if v.algorithm == "gasv2")
-                raise ValueError(f"--gasv2-presets: {p!r} is not a GASv2 preset; choose from {gasv2}")
+            try:
+                preset_algorithm(p, GasV2Config)
+            except ValueError as exc:
+                raise ValueError(f"--gasv2-presets: {exc}") from None
         for v in self.variants:
             try:
                 variant_net(v)
@@ -125,14 +128,24 @@ def random_episode(rng: np.random.Generator, k: int, T: int = 50, is_demo: bool 
     )  # fmt: skip
 
 
+A = TypeVar("A")
+
+
+def preset_algorithm(preset: str, kind: type[A], where: str = "") -> A:
+    """The algorithm config of learner preset ``preset``, a ``kind`` (``SacConfig``, ``GasV2Config``);
+    ValueError naming the presets of that kind otherwise (``where``: the value it came in)."""
+    choices = sorted(k for k, v in LEARNER_PRESETS.items() if isinstance(v.algorithm, kind))
+    if preset not in choices:
+        raise ValueError(f"unknown preset {preset!r}{where}; choose from {choices}")
+    return LEARNER_PRESETS[preset].algorithm  # type: ignore[return-value]  # checked just above
+
+
 def variant_net(variant: str) -> tuple[str, NetConfig, int]:
     preset, _, group = variant.partition(":")
-    if preset not in LEARNER_PRESETS:
-        raise ValueError(f"unknown preset {preset!r} in {variant!r}; choose from {sorted(LEARNER_PRESETS)}")
+    net = preset_algorithm(preset, SacConfig, f" in {variant!r}").net
     if group not in ("", "c4", "d4", "none"):
         raise ValueError(f"unknown group {group!r} in {variant!r}; choose from c4, d4, none")
-    lc = LEARNER_PRESETS[preset]
-    return preset, dataclasses.replace(lc.net, group=group or lc.net.group), lc.batch_size
+    return preset, dataclasses.replace(net, group=group or net.group), LEARNER_PRESETS[preset].batch_size
 
 
 DEMO_STEPS = 16
@@ -169,16 +182,16 @@ def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
     rows = []
     for variant in cfg.variants:
         preset, net, batch_size = variant_net(variant)
-        lc = LEARNER_PRESETS[preset]
+        lc, algo = LEARNER_PRESETS[preset], preset_algorithm(preset, SacConfig)
         torch.manual_seed(cfg.seed)
-        sac = RecurrentSAC(build_actor(net), build_critic(net), lc.sac, device)
+        sac = RecurrentSAC(build_actor(net), build_critic(net), algo.sac, device)
         # the learner's own call: floats per update on the CPU, statistics left on a GPU
         update = sac.update if device.type == "cpu" else sac.update_tensors
         sample_s, update_s = [], []
         for i in range(cfg.updates + 1):
             _synchronize(device)
             t0 = time.perf_counter()
-            sample = replay.sample(batch_size, rng, demo_fraction=lc.demo_fraction, trim=lc.trim_batches)
+            sample = replay.sample(batch_size, rng, demo_fraction=lc.demo_fraction, trim=algo.trim_batches)
             batch = to_batch(sample, device)
             t1 = time.perf_counter()
             update(batch)
@@ -191,7 +204,7 @@ def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
         _log(f"{variant} on {device}: {per_update:.3f} s/update")
         rows.append({
             "variant": variant, "device": str(device), "group": net.group, "batch (episodes)": batch_size,
-            "critic": net.critic_input, "demo share": lc.demo_fraction, "trimmed": lc.trim_batches, "shared encoder": lc.sac.share_encoder,
+            "critic": net.critic_input, "demo share": lc.demo_fraction, "trimmed": algo.trim_batches, "shared encoder": algo.sac.share_encoder,
             "params (actor + critic)": sum(p.numel() for m in (sac.actor, sac.critic) for p in m.parameters()),
             "s/update (median)": per_update, "s/update (min)": min(update_s), **_timing_columns(update_s),
             "updates/s": 1.0 / per_update, "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),
@@ -247,14 +260,16 @@ def bench_gasv2_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
     rows = []
     device = prepare_device(cfg.device)
     for preset in cfg.gasv2_presets:
-        lc = LEARNER_PRESETS[preset]
+        lc, algo = LEARNER_PRESETS[preset], preset_algorithm(preset, GasV2Config)
         torch.manual_seed(cfg.seed)
-        agent = GasV2Agent(lc.dreamer, seed=cfg.seed, device=device)
+        agent = GasV2Agent(algo.dreamer, seed=cfg.seed, device=device)
         sample_s, update_s = [], []
         for i in range(cfg.updates + 1):
             _synchronize(device)
             t0 = time.perf_counter()
-            sample = replay.sample_chunks(lc.batch_size, lc.chunk_length, rng, demo_fraction=lc.demo_fraction)
+            sample = replay.sample_chunks(
+                lc.batch_size, algo.chunk_length, rng, demo_fraction=lc.demo_fraction
+            )
             batch = to_chunk_batch(sample, device)
             t1 = time.perf_counter()
             agent.update(batch)
@@ -265,9 +280,9 @@ def bench_gasv2_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
                 update_s.append(t2 - t0)
         per_update = statistics.median(update_s)
         _log(f"{preset}: {per_update:.3f} s/update")
-        d = lc.dreamer
+        d = algo.dreamer
         rows.append({
-            "preset": preset, "batch (windows x length)": f"{lc.batch_size} x {lc.chunk_length}",
+            "preset": preset, "batch (windows x length)": f"{lc.batch_size} x {algo.chunk_length}",
             "deter / hidden": f"{d.deter} / {d.hidden}", "latent": f"{d.stoch} x {d.classes}", "cnn depth": d.cnn_depth,
             "params (all)": sum(p.numel() for m in (agent.world_model, agent.actor, agent.critic) for p in m.parameters()),
             "params (published)": sum(v.numel() for v in agent.policy.state_dict().values()), "device": str(device),
@@ -359,7 +374,7 @@ def bench_weights(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
             wait_alive(watch, (CONSUMER, name), p, 60.0)
         version = -1
         for preset in cfg.latency_presets:
-            spec = PolicySpec(LEARNER_PRESETS[preset].net)
+            spec = PolicySpec(preset_algorithm(preset, SacConfig).net)
             actor = build_actor(spec.net)
             latencies, sizes = [], []
             for _ in range(cfg.versions):

@@ -131,6 +131,8 @@ def cli(cls: type[C], argv: Sequence[str], prog: str, description: str, default:
             return tyro.cli(cls, prog=prog, description=description, args=list(argv), default=default)
     except _RefusedError as exc:
         refuse(prog, str(exc))
+    except ValueError as exc:  # the checks of a config tyro builds past its hook (a union's member)
+        refuse(prog, str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid value")
 
 
 def _parse_error_hook(hook):
@@ -175,6 +177,8 @@ def override(cfg: C, flags: str, what: str) -> C:
         lines = [ln.strip(" │|-─╭╮╰╯") for ln in buf.getvalue().splitlines()]
         reason = next((ln for ln in lines if ": " in ln), "bad flags")
         raise ValueError(f"{what} {flags!r}: {reason}") from None
+    except ValueError as exc:  # the checks of a config tyro builds past its box (a union's member)
+        raise ValueError(f"{what} {flags!r}: {str(exc).strip().splitlines()[0]}") from None
 
 
 def to_jsonable(cfg: Any) -> Any:

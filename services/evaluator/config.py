@@ -48,6 +48,18 @@ class EvaluatorConfig:
     version the history scored can be served (`mea serve --weights RUN_DIR --version N`)."""
     torch_threads: int = 1
     """torch intra-op threads for the policy (0: torch's default)."""
+    tensorboard_dir: Path | None = None
+    """Write eval/success_rate, eval/return, eval/length and eval/grasp_score of each evaluation here
+    (in its own directory, <dir>/<instance>), against the learner's env steps, and the videos as
+    animations (`mea run`: RUN_DIR/tb; none: not written)."""
+    videos: int = 2
+    """Episodes of a chosen evaluation recorded as an MP4 in RUN_DIR/eval/videos (the scene beside the
+    policy's image; its first held-out seeds): the 1st evaluation, every video_every-th after it, and
+    the one at the budget. 0: none. Needs run_dir."""
+    video_every: int = 5
+    """Film every this many-th evaluation (counted over the run's history, so a restart keeps the count)."""
+    video_size: int = 256
+    """Pixels per side of each picture in a video frame."""
     service: ServiceConfig = ServiceConfig()
     """Identity, transport, metrics and logs."""
 
@@ -71,6 +83,13 @@ class EvaluatorConfig:
             raise ValueError(
                 "seed_base, torch_threads and keep_weights must be >= 0, points_per_segment >= 1"
             )
+        if (
+            self.videos < 0
+            or self.video_every < 1
+            or not 64 <= self.video_size <= 1024
+            or self.video_size % 16
+        ):
+            raise ValueError("videos must be >= 0, video_every >= 1, video_size a multiple of 16 in 64..1024")
 
     def env_settings(self) -> EnvSettings:
         return EnvSettings(

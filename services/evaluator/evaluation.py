@@ -13,12 +13,15 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from proto.control import EvalReport
 from proto.weights import WeightsBlob
 from services.actor.episodes import EpisodeBuilder
 from services.actor.rollout import policy_input, run_episode
 from services.evaluator.core.metrics import EpisodeResult, EvalSummary, episode_result, summarize
-from services.tasks import ManipulationEnv
+from services.evaluator.video import Film
+from services.tasks import ManipulationEnv, Observation
 
 
 @dataclass(frozen=True)
@@ -84,29 +87,45 @@ class EpisodeRunner:
         self.keep_up = keep_up
         self.on_episode = on_episode
 
-    def episodes(self, runtime, seeds: Sequence[int]) -> list[EpisodeResult]:
-        """One episode per seed, the recurrent state reset before each."""
+    def episodes(self, runtime, seeds: Sequence[int], film: Film | None = None) -> list[EpisodeResult]:
+        """One episode per seed, the recurrent state reset before each; ``film`` films the episodes it
+        wants (the scene and the policy's image at every observation; the episodes are the same)."""
         results = []
-        observation = runtime.spec.observation
-        for seed in seeds:
+        for k, seed in enumerate(seeds):
             t0 = time.perf_counter()
             runtime.reset()
             builder = EpisodeBuilder(task=self.task, seed=seed, actor_id=self.evaluator_id,
                                      policy_version=runtime.version, policy_kind="eval", is_demo=False,
                                      segments=self.env.segment_names)  # fmt: skip
-            b = run_episode(self.env, seed, lambda o: runtime.act(policy_input(o, observation)), builder,
-                            self.keep_up, getattr(runtime, "executed", None))  # fmt: skip
+            filming = film if film is not None and film.wants(k) else None
+            b = run_episode(self.env, seed, self._actor(runtime, filming), builder, self.keep_up,
+                            getattr(runtime, "executed", None))  # fmt: skip
+            result = episode_result(b.rewards, b.terminated, seed)
+            if filming is not None:  # the last observation, which no action answers
+                filming.capture(self.env, policy_input(b.obs[-1], runtime.spec.observation))
+                filming.cut(k, seed, result.success, float(sum(b.rewards)))
             if self.on_episode is not None:
                 self.on_episode(time.perf_counter() - t0)
-            results.append(episode_result(b.rewards, b.terminated, seed))
+            results.append(result)
         return results
 
+    def _actor(self, runtime, film: Film | None) -> Callable[[Observation], np.ndarray]:
+        observation = runtime.spec.observation
+
+        def act(obs: Observation) -> np.ndarray:
+            x = policy_input(obs, observation)
+            if film is not None:
+                film.capture(self.env, x)
+            return runtime.act(x)
+
+        return act
+
     def evaluate(self, blob: WeightsBlob, runtime, env_steps: int, seeds: Sequence[int],
-                 at_budget: bool) -> Evaluation:  # fmt: skip
+                 at_budget: bool, film: Film | None = None) -> Evaluation:  # fmt: skip
         """``blob``'s episodes on ``seeds`` in ``runtime`` (loaded from it), summarised (grasp score
-        against the env's time limit)."""
+        against the env's time limit); ``film``: see ``episodes``."""
         t0, created = time.monotonic(), time.time()
-        results = self.episodes(runtime, seeds)
+        results = self.episodes(runtime, seeds, film)
         summary = summarize(results, self.env.settings.max_steps)
         return Evaluation(version=blob.version, run_id=blob.run_id, task=self.task,
                           evaluator_id=self.evaluator_id, env_steps=env_steps, at_budget=at_budget,

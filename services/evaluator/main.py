@@ -19,6 +19,13 @@ if no gate was seen) and appended to the history. A shutdown during an evaluatio
 history lines already in the file (a restarted evaluator) count for the improvement timestep and
 the cadence.
 
+With ``tensorboard_dir`` each evaluation's eval/success_rate, eval/return, eval/length and
+eval/grasp_score go to TensorBoard against the learner's env steps. Chosen evaluations (``videos``,
+``video_every``: the 1st, every 5th after it and the one at the budget) film their first episodes
+(``video.Film``): RUN_DIR/eval/videos/v<version>_<env steps>steps.mp4, and the same frames as an
+animation under eval/video in TensorBoard, with the file's path under eval/video_path. Filming
+leaves the episodes as they are; its cost is measured in docs/watching-training.md.
+
 Metrics (``mea_evaluator_*``): evaluations_total, success_rate, mean_return, mean_length,
 grasp_score, policy_version and env_steps of the last evaluation, episode_seconds (histogram),
 bad_weights_total{reason}, improvement_env_steps (-1 while none). Heartbeat counters (the first
@@ -40,6 +47,7 @@ from services.common.bus.base import Bus
 from services.common.config import ServiceConfig
 from services.common.replay_gate import GateTracker
 from services.common.runtime import ServiceContext, subscribing_bus_factory, torch_threads
+from services.common.scalars import ScalarLog
 from services.common.weights import WeightsClient
 from services.evaluator.config import PRESETS, EvaluatorConfig
 from services.evaluator.core.metrics import EvalSummary, run_improvement_timestep
@@ -47,6 +55,8 @@ from services.evaluator.core.schedule import last_evaluated_env_steps
 from services.evaluator.evaluation import EpisodeRunner, Evaluation
 from services.evaluator.history import HISTORY, append_history, read_history
 from services.evaluator.metrics import evaluator_metrics
+from services.evaluator.video import FPS, Film
+from services.evaluator.video import write as write_video
 from services.tasks import ManipulationEnv, make_env
 
 log = logging.getLogger(__name__)
@@ -90,6 +100,10 @@ class Evaluator:
         self.last_version = -1
         self.last_steps = -1
         self.started = time.monotonic()
+        self.scalars = (
+            None if cfg.tensorboard_dir is None else ScalarLog(cfg.tensorboard_dir, 1, ctx.instance)
+        )
+        self.videos_dir = None if cfg.run_dir is None or cfg.videos == 0 else cfg.run_dir / "eval" / "videos"
 
     def heartbeat_counters(self) -> dict[str, float]:
         """For the launcher table (the first four are shown); -1 means none yet / unknown."""
@@ -157,8 +171,9 @@ class Evaluator:
         seeds, at_budget = self.schedule.seeds_at(env_steps), self.schedule.at_budget(env_steps)
         log.info("evaluating", extra={"version": blob.version, "env_steps": env_steps, "episodes": len(seeds),
                                       "at_budget": at_budget})  # fmt: skip
+        film = self._film(blob.version, env_steps, at_budget)
         try:
-            ev = self.runner.evaluate(blob, runtime, env_steps, seeds, at_budget)
+            ev = self.runner.evaluate(blob, runtime, env_steps, seeds, at_budget, film)
         except _StopRequestedError:
             log.info("evaluation abandoned at shutdown", extra={"version": blob.version})
             return None
@@ -172,12 +187,45 @@ class Evaluator:
                 log.exception("could not append to the eval history", extra={"path": str(self.history_path)})
         self._keep_weights(blob)
         self._account(ev)
+        self._tensorboard(ev, film)
         s = ev.summary
         log.info("evaluated", extra={"version": blob.version, "env_steps": env_steps,
                                      "success_rate": s.success_rate, "mean_return": s.mean_return,
                                      "grasp_score": s.grasp_score, "improvement_env_steps": self.improvement,
                                      "seconds": round(ev.wall_seconds, 2)})  # fmt: skip
         return record
+
+    def _film(self, version: int, env_steps: int, at_budget: bool) -> Film | None:
+        """A film of this evaluation's first episodes if it is a chosen one: the run's 1st evaluation,
+        every ``video_every``-th after it (over the history, so a restart keeps the count) and the one
+        at the budget."""
+        if self.videos_dir is None or not (at_budget or len(self.records) % self.cfg.video_every == 0):
+            return None
+        steps = "?" if env_steps < 0 else f"{env_steps:,}"
+        return Film(self.cfg.videos, self.cfg.video_size, title=f"v{version} at {steps} env steps")
+
+    def _tensorboard(self, ev: Evaluation, film: Film | None) -> None:
+        """The evaluation's scalars at the learner's env steps (none without a gate), and its video."""
+        path = None
+        if film is not None and film.frames and self.videos_dir is not None:
+            t0 = time.perf_counter()
+            path = self.videos_dir / f"v{ev.version:08d}_{max(ev.env_steps, 0)}steps.mp4"
+            try:
+                write_video(path, film.frames)
+            except Exception:  # noqa: BLE001 - a video that cannot be written must not stop evaluating
+                log.exception("could not write the evaluation video", extra={"path": str(path)})
+                path = None
+            else:
+                log.info("evaluation video written", extra={"path": str(path), "frames": len(film.frames),
+                                                            "seconds": round(time.perf_counter() - t0, 2)})  # fmt: skip
+        if self.scalars is None or ev.env_steps < 0:
+            return
+        s, step = ev.summary, ev.env_steps
+        self.scalars.add({"eval/success_rate": s.success_rate, "eval/return": s.mean_return,
+                          "eval/length": s.mean_length, "eval/grasp_score": s.grasp_score}, step)  # fmt: skip
+        if path is not None and film is not None:
+            self.scalars.add_animation("eval/video", film.frames, step, FPS)
+            self.scalars.add_text("eval/video_path", str(path), step)
 
     def _keep_weights(self, blob: WeightsBlob) -> None:
         """Keep the evaluated version beside its history line (the learner keeps only its newest), so
@@ -261,6 +309,8 @@ def _run(cfg: EvaluatorConfig, bus_factory: Callable[[ServiceConfig], Bus] | Non
             gate.sub.close()  # type: ignore[union-attr]
             if env is None:
                 core.env.close()
+            if core.scalars is not None:
+                core.scalars.close()
         log.info("evaluator done", extra={"evaluations": core.evaluations, "bad_weights": core.bad_weights,
                                           "improvement_env_steps": core.improvement})  # fmt: skip
     return 0

@@ -335,7 +335,8 @@ def save_trainer(
         "config": config,
         "saved_at": time.time(),
     }
-    learner = {"sac": on_cpu(trainer.agent.state_dict()), "rng": rng_state(trainer.rng)}  # "sac": any agent
+    # "sac" holds any algorithm's state (the key predates GASv2; checkpoints of older runs keep loading)
+    learner = {"sac": on_cpu(trainer.agent.state_dict()), "rng": rng_state(trainer.rng)}
     replay = trainer.replay.state_dict()
     return save(directory, learner=learner, replay=replay, meta=meta, keep=keep, max_bytes=max_bytes)
 

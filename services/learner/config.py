@@ -1,5 +1,5 @@
-"""The learner's settings: `LearnerConfig`, its presets, the run id a fresh run gets, and the
-trainer a config describes (``build_trainer``).
+"""The learner's settings: `LearnerConfig` (the algorithm's own config inside it), one preset table
+per algorithm, the run id a fresh run gets, and the trainer a config describes (``build_trainer``).
 
 No transport, so that the benchmarks, the tests and the shell (``services.learner.main``) share one
 definition.
@@ -7,34 +7,38 @@ definition.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import re
 import time
+from collections.abc import Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import torch
+import tyro
 
 from services.common.config import ServiceConfig
-from services.learner.core.gasv2.agent import GasV2Agent
-from services.learner.core.gasv2.chunk_replay import ChunkReplay
+from services.learner.core.gasv2.algorithm import GasV2Config
 from services.learner.core.gasv2.config import PRESETS as DREAMER_PRESETS
-from services.learner.core.gasv2.config import DreamerConfig
-from services.learner.core.gasv2.trainer import GasV2Trainer
 from services.learner.core.networks import PRESETS as NET_PRESETS
-from services.learner.core.networks import NetConfig, build_actor, build_critic
-from services.learner.core.policy import OBSERVATIONS
-from services.learner.core.privileged import STATE_DIM
 from services.learner.core.rate_limiter import SampleToInsertRatio
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac import RecurrentSAC, SacSettings
-from services.learner.core.trainer import Trainer, TrainerSettings
+from services.learner.core.registry import lookup
+from services.learner.core.sac.algorithm import SacConfig
+from services.learner.core.sac.config import SacSettings
+from services.learner.core.trainer import Trainer
 
-ALGORITHMS = ("equi_rsac", "rsac", "gasv2")
 DEVICES = re.compile(r"cpu|cuda(:\d+)?")
 """Learner devices: the CPU or a CUDA GPU (``cuda`` is the current one, ``cuda:N`` the N-th)."""
+
+AlgorithmSettings = Annotated[
+    SacConfig | GasV2Config, tyro.conf.arg(name="", prefix_name=False), tyro.conf.AvoidSubcommands
+]
+"""The algorithm's own config, its fields flags of their own (``--algorithm``, ``--net.*``, ``--sac.*``,
+``--dreamer.*``, ``--observation``): a preset picks the algorithm, the flags change its fields."""
 
 
 def check_device(device: str, option: str) -> None:
@@ -69,22 +73,10 @@ def prepare_device(device: str) -> torch.device:
 
 @dataclass(frozen=True)
 class LearnerConfig:
-    """Train recurrent SAC from replayed episodes and broadcast the actor's weights."""
+    """Train a learner (recurrent SAC or GASv2) from replayed episodes and broadcast its policy's weights."""
 
-    algorithm: str = "equi_rsac"
-    """equi_rsac (C4/D4-equivariant, `--net.group c4|d4`), rsac (the non-equivariant twin, same widths)
-    or gasv2 (DreamerV2 world model + imagination actor; Surgical Grasp Any; `--preset gasv2...`)."""
-    net: NetConfig = field(default_factory=lambda: NET_PRESETS["paper"])
-    """Network widths and symmetry group (SAC)."""
-    sac: SacSettings = SacSettings()
-    """SAC hyperparameters."""
-    dreamer: DreamerConfig = field(default_factory=lambda: DREAMER_PRESETS["paper"])
-    """GASv2's world model, actor and critic (gasv2 only)."""
-    chunk_length: int = 6
-    """gasv2: observations per training window (GASv2: batch 100 x length 6)."""
-    observation: str = "voxel"
-    """What the policy sees: voxel (orthographic projection; EquiObs/MEA), depth (rendered; Equi-RSAC)
-    or dsa (the surgical task's DSA image; gasv2)."""
+    algorithm: AlgorithmSettings = field(default_factory=SacConfig)
+    """The algorithm and its settings: ``SacConfig`` (equi_rsac, rsac) or ``GasV2Config`` (gasv2)."""
     replay_capacity: int = 100_000
     """Replay capacity in transitions (raw and augmented copies alike; demonstrations are never evicted)."""
     batch_size: int = 32
@@ -95,10 +87,8 @@ class LearnerConfig:
     successes_as_demos: bool = False
     """Episodes that succeeded (``Episode.succeeded``: online successes and their copies) join the demonstration set
     for demo_fraction and the BC term: self-imitation of what already worked (off: demos only)."""
-    trim_batches: bool = True
-    """Pad each batch to its longest episode instead of seq_len (same losses, less work)."""
     seq_len: int = 50
-    """Episodes are padded to this many steps (the task's time limit)."""
+    """Longest episode stored (the task's time limit); SAC pads its batches to it."""
     samples_per_insert: float = 1.0
     """Updates per raw env step (Equi-RSAC: one update per env step)."""
     min_steps: int = 100
@@ -153,20 +143,7 @@ class LearnerConfig:
     """Identity, transport, metrics and logs."""
 
     def __post_init__(self) -> None:
-        if self.algorithm not in ALGORITHMS:
-            raise ValueError(f"algorithm must be one of {ALGORITHMS}, not {self.algorithm!r}")
-        if self.algorithm == "rsac" and self.net.group != "none":  # the twin: same widths, plain layers
-            object.__setattr__(self, "net", dataclasses.replace(self.net, group="none"))
-        if self.algorithm == "gasv2" and self.observation != "dsa":
-            raise ValueError("--algorithm gasv2 starts from a gasv2 preset (--preset gasv2, gasv2-cpu-small or "
-                             "gasv2-smoke): it observes dsa, the surgical DSA image, in windows of its own")  # fmt: skip
-        if self.observation == "dsa" and self.algorithm != "gasv2":
-            raise ValueError("observation dsa (the surgical DSA image) is the gasv2 learner's only")
-        if self.algorithm == "equi_rsac" and self.net.group == "none":
-            raise ValueError("equi_rsac needs --net.group c4 or d4 (the plain twin is --algorithm rsac)")
-        if self.observation not in OBSERVATIONS:
-            raise ValueError(f"observation must be one of {OBSERVATIONS}, not {self.observation!r}")
-        for name in ("batch_size", "seq_len", "publish_every", "queue", "chunk_length"):
+        for name in ("batch_size", "seq_len", "publish_every", "queue"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
         if self.keep_checkpoints < 1 or self.checkpoint_max_bytes < 0:
@@ -175,26 +152,24 @@ class LearnerConfig:
             raise ValueError("replay_capacity must hold at least one episode (>= seq_len)")
         if not 0.0 <= self.demo_fraction <= 1.0:
             raise ValueError(f"demo_fraction must be in [0, 1], got {self.demo_fraction}")
-        if self.net.critic_input == "state" and self.sac.share_encoder:
-            raise ValueError("sac.share_encoder needs the image critic (net.critic_input image)")
         check_device(self.device, "--device")
         if self.samples_per_insert <= 0 or self.min_steps < 0 or self.error_buffer < 0:
             raise ValueError("samples_per_insert must be > 0, min_steps and error_buffer >= 0")
 
-    def trainer_settings(self) -> TrainerSettings:
-        return TrainerSettings(
-            batch_size=self.batch_size,
-            trim_batches=self.trim_batches,
-            publish_every=self.publish_every,
-            demo_fraction=self.demo_fraction,
-            successes_as_demos=self.successes_as_demos,
-            max_env_steps=self.max_env_steps,
-            max_updates=self.max_updates,
-            metrics_every=1 if self.device == "cpu" else max(1, self.tensorboard_every),
-        )
+    @property
+    def metrics_every(self) -> int:
+        """Updates per read of the update statistics: each one on the CPU, means over
+        tensorboard_every on a GPU (``core.trainer.MetricsWindow``)."""
+        return 1 if self.device == "cpu" else max(1, self.tensorboard_every)
 
 
-PRESETS = {
+# One preset table per algorithm. `mea learner --preset` takes Equi-RSAC's names as they are and
+# GASv2's prefixed (``PRESETS``); `mea run --learner-preset` names a row of its variant's table.
+_CPU_SMALL_SAC = SacConfig(
+    net=dataclasses.replace(NET_PRESETS["cpu-small"], critic_layer_norm=True, actor_prev_action=False),
+    sac=SacSettings(init_alpha=0.01, bc_weight=2.0, share_encoder=True, return_bound=True),
+)
+SAC_PRESETS: dict[str, LearnerConfig] = {
     "paper": LearnerConfig(),
     # cpu-small: the recipe for two CPU cores and a 20K env-step budget (README, "Presets"). Cuts:
     # halved network widths, 8 episodes per batch instead of 32, 0.5 updates per env step instead of
@@ -203,8 +178,7 @@ PRESETS = {
     # 0.01, LayerNorm in the Q MLPs, one encoder shared by actor and critic, critic targets bounded
     # below by the observed return; replay 200k holds a whole 20K-step run with its copies.
     "cpu-small": LearnerConfig(
-        net=dataclasses.replace(NET_PRESETS["cpu-small"], critic_layer_norm=True, actor_prev_action=False),
-        sac=SacSettings(init_alpha=0.01, bc_weight=2.0, share_encoder=True, return_bound=True),
+        algorithm=_CPU_SMALL_SAC,
         demo_fraction=0.5,
         successes_as_demos=True,
         batch_size=8,
@@ -218,7 +192,7 @@ PRESETS = {
     # smoke: the cpu-small networks at the smallest useful batch, for end-to-end tests of the stack
     # (weights versions every 2 updates); it does not learn anything in the time it runs.
     "smoke": LearnerConfig(
-        net=NET_PRESETS["cpu-small"],
+        algorithm=SacConfig(net=NET_PRESETS["cpu-small"]),
         batch_size=2,
         samples_per_insert=0.5,
         replay_capacity=5_000,
@@ -228,32 +202,30 @@ PRESETS = {
         checkpoint_minutes=1.0,
     ),
 }
-
 # cpu-small-state: cpu-small with a critic on the simulator's privileged state instead of images (an
 # asymmetric actor-critic: ``privileged.py``; the policy still reads images, and the critic is used
 # in simulation only). Same demo share, BC, temperature and return bound; no shared encoder (the
 # critic has none) and no critic LayerNorm (the state critic's MLPs have their own). Its updates are
 # cheaper, so it affords the paper's 1.0 update per env step in about 35 minutes for 20K env steps
 # (Block Pull at 20K: 0.48 and 0.28 for seeds 0 and 1, against 0.28 with 0.5 for seed 0; README).
-PRESETS["cpu-small-state"] = dataclasses.replace(
-    PRESETS["cpu-small"],
-    net=dataclasses.replace(PRESETS["cpu-small"].net, critic_input="state", critic_layer_norm=False),
-    sac=dataclasses.replace(PRESETS["cpu-small"].sac, share_encoder=False),
+SAC_PRESETS["cpu-small-state"] = dataclasses.replace(
+    SAC_PRESETS["cpu-small"],
+    algorithm=dataclasses.replace(
+        _CPU_SMALL_SAC,
+        net=dataclasses.replace(_CPU_SMALL_SAC.net, critic_input="state", critic_layer_norm=False),
+        sac=dataclasses.replace(_CPU_SMALL_SAC.sac, share_encoder=False),
+    ),
     samples_per_insert=1.0,
 )
-
 
 # GASv2 on Surgical Grasp Any (the reference's training settings, tasks-and-baselines.md section 5):
 # windows of 6 observations, 100 per update, one update per 2 env steps (`train_every` 2), replay
 # 5e5 transitions, episodes of at most 80 steps; demos and their MEA copies are pinned in replay.
 # The reference's 9e3 random prefill steps are the actors' (`mea run --random-steps`); training
 # starts once min_steps env steps are in.
-PRESETS["gasv2"] = LearnerConfig(
-    algorithm="gasv2",
-    observation="dsa",
-    dreamer=DREAMER_PRESETS["paper"],
+_gasv2 = LearnerConfig(
+    algorithm=GasV2Config(dreamer=DREAMER_PRESETS["paper"], chunk_length=6),
     batch_size=100,
-    chunk_length=6,
     seq_len=80,
     replay_capacity=500_000,
     samples_per_insert=0.5,
@@ -261,33 +233,96 @@ PRESETS["gasv2"] = LearnerConfig(
     error_buffer=200.0,
     publish_every=10,
 )
-# gasv2-cpu-small: two CPU cores (16K env steps in about 40 minutes; README, "The learner (GASv2)"): the world model's
-# cpu-small widths (gasv2/config.py), 16 windows per update instead of 100, training from 500 env
-# steps, and the demo-aware sampling of the cpu-small SAC recipe (half of every batch from the demos,
-# their copies and online successes); everything else as gasv2.
-PRESETS["gasv2-cpu-small"] = dataclasses.replace(
-    PRESETS["gasv2"],
-    dreamer=DREAMER_PRESETS["cpu-small"],
-    batch_size=16,
-    replay_capacity=200_000,
-    min_steps=500,
-    error_buffer=100.0,
-    demo_fraction=0.5,
-    successes_as_demos=True,
-    publish_every=5,
-    checkpoint_minutes=5.0,
-)
-# gasv2-smoke: tiny networks and batches for end-to-end tests of the stack; learns nothing.
-PRESETS["gasv2-smoke"] = dataclasses.replace(
-    PRESETS["gasv2"],
-    dreamer=DREAMER_PRESETS["smoke"],
-    batch_size=2,
-    replay_capacity=20_000,
-    min_steps=50,
-    error_buffer=50.0,
-    publish_every=2,
-    checkpoint_minutes=1.0,
-)
+GASV2_PRESETS: dict[str, LearnerConfig] = {
+    "paper": _gasv2,
+    # cpu-small: two CPU cores (16K env steps in about 40 minutes; README, "The learner (GASv2)"): the
+    # world model's cpu-small widths (gasv2/config.py), 16 windows per update instead of 100, training
+    # from 500 env steps, and the demo-aware sampling of the cpu-small SAC recipe (half of every batch
+    # from the demos, their copies and online successes); everything else as paper.
+    "cpu-small": dataclasses.replace(
+        _gasv2,
+        algorithm=GasV2Config(dreamer=DREAMER_PRESETS["cpu-small"]),
+        batch_size=16,
+        replay_capacity=200_000,
+        min_steps=500,
+        error_buffer=100.0,
+        demo_fraction=0.5,
+        successes_as_demos=True,
+        publish_every=5,
+        checkpoint_minutes=5.0,
+    ),
+    # smoke: tiny networks and batches for end-to-end tests of the stack; learns nothing.
+    "smoke": dataclasses.replace(
+        _gasv2,
+        algorithm=GasV2Config(dreamer=DREAMER_PRESETS["smoke"]),
+        batch_size=2,
+        replay_capacity=20_000,
+        min_steps=50,
+        error_buffer=50.0,
+        publish_every=2,
+        checkpoint_minutes=1.0,
+    ),
+}
+
+PRESET_TABLES: dict[type, tuple[str, dict[str, LearnerConfig]]] = {
+    SacConfig: ("", SAC_PRESETS),
+    GasV2Config: ("gasv2", GASV2_PRESETS),
+}
+"""Each algorithm config type's preset table and the prefix of its names in ``PRESETS``."""
+
+
+def _flat_name(prefix: str, name: str) -> str:
+    return name if not prefix else prefix if name == "paper" else f"{prefix}-{name}"
+
+
+PRESETS: dict[str, LearnerConfig] = {
+    _flat_name(prefix, name): cfg for prefix, table in PRESET_TABLES.values() for name, cfg in table.items()
+}
+"""`mea learner --preset NAME`: every table's presets (paper, cpu-small, ..., gasv2, gasv2-cpu-small, ...)."""
+
+
+def learner_presets(algorithm: str) -> tuple[str, ...]:
+    """The preset names of ``algorithm``'s table (a run's ``--learner-preset`` choices)."""
+    return tuple(PRESET_TABLES[lookup(algorithm).config][1])
+
+
+def preset_name(algorithm: str, name: str) -> str:
+    """The ``PRESETS`` name of ``algorithm``'s preset ``name``; ValueError naming its presets otherwise."""
+    prefix, table = PRESET_TABLES[lookup(algorithm).config]
+    if name not in table:
+        raise ValueError(
+            f"learner preset {name!r} has no {algorithm} learner; choose one of {', '.join(table)}"
+        )
+    return _flat_name(prefix, name)
+
+
+class _Peek(argparse.ArgumentParser):
+    """A look at one option before the real parse: never prints, never exits."""
+
+    def error(self, message: str):  # type: ignore[override]
+        raise ValueError(message)
+
+
+def without_foreign_group(argv: Sequence[str]) -> list[str]:
+    """`mea learner`'s ``argv`` less ``--net.group G`` where its preset's algorithm has no networks
+    config (GASv2): deploy/docker-compose.yml passes the task's group to every learner."""
+    pre = _Peek(add_help=False)
+    pre.add_argument("--preset", default=next(iter(PRESETS)))
+    try:
+        known, _ = pre.parse_known_args(list(argv))
+    except ValueError:  # a malformed --preset: the command's own parser refuses it in one line
+        return list(argv)
+    algo = PRESETS[known.preset].algorithm if known.preset in PRESETS else None
+    if algo is None or "net" in {f.name for f in dataclasses.fields(algo)}:
+        return list(argv)
+    out, args = [], list(argv)
+    while args:
+        arg = args.pop(0)
+        if arg == "--net.group" and args:
+            args.pop(0)
+        elif not arg.startswith("--net.group="):
+            out.append(arg)
+    return out
 
 
 def default_run_id(run_dir: Path) -> str:
@@ -302,29 +337,22 @@ def build_trainer(cfg: LearnerConfig, guard: AbstractContextManager[object] | No
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     limiter = SampleToInsertRatio(cfg.samples_per_insert, cfg.min_steps, cfg.error_buffer)
-    if cfg.algorithm == "gasv2":
-        replay = ChunkReplay(cfg.replay_capacity, seq_len=cfg.seq_len, seed=cfg.seed)
-        agent = GasV2Agent(cfg.dreamer, seed=cfg.seed, device=prepare_device(cfg.device))
-        return GasV2Trainer(agent, replay, limiter, rng, cfg.trainer_settings(), cfg.chunk_length, guard)
-    sac = RecurrentSAC(build_actor(cfg.net), build_critic(cfg.net), cfg.sac, prepare_device(cfg.device))
-    replay = SequenceReplay(
-        cfg.replay_capacity,
-        image_size=cfg.net.image_size,
-        seq_len=cfg.seq_len,
-        channels=cfg.net.in_channels,
-        seed=cfg.seed,
-        state_dim=STATE_DIM if cfg.net.critic_input == "state" else 0,
-    )
-    return Trainer(sac, replay, limiter, rng, cfg.trainer_settings(), guard)
+    agent = cfg.algorithm.build(cfg.seed, prepare_device(cfg.device))
+    replay = cfg.algorithm.replay(cfg.replay_capacity, cfg.seq_len, cfg.seed)
+    return Trainer(cfg.algorithm, agent, replay, limiter, rng, cfg, guard)
 
 
 __all__ = [
-    "ALGORITHMS",
     "DEVICES",
+    "GASV2_PRESETS",
     "PRESETS",
+    "SAC_PRESETS",
     "LearnerConfig",
     "build_trainer",
     "check_device",
     "default_run_id",
+    "learner_presets",
+    "without_foreign_group",
+    "preset_name",
     "prepare_device",
 ]

@@ -24,7 +24,9 @@ from proto.seal import is_sealed
 from proto.weights import WeightsBlob
 from services.common import run_key, weights_file
 from services.learner.core.networks import build_actor
-from services.learner.core.policy import PolicySpec
+from services.learner.core.registry import lookup
+from services.learner.core.sac.algorithm import SacConfig
+from services.learner.core.sac.policy import PolicySpec
 from services.learner.core.tensors import fitting_state
 
 if TYPE_CHECKING:
@@ -62,25 +64,31 @@ def read(path: Path) -> tuple[Path, WeightsBlob]:
         raise weights_file.WeightsFileError(f"{path}: cannot read it ({exc.strerror or exc})") from None
 
 
+def supports(algorithm: str) -> bool:
+    """Whether ``algorithm``'s learner starts from an actor's weights (the recurrent SAC ones)."""
+    return lookup(algorithm).config is SacConfig
+
+
 def check_fits(blob: WeightsBlob, cfg: LearnerConfig) -> dict[str, torch.Tensor]:
     """``blob``'s tensors as the state dict of ``cfg``'s actor; ValueError unless the blob is a policy
     of ``cfg``'s algorithm and observation whose tensors fit that actor name for name and shape for shape."""
-    if cfg.algorithm == "gasv2":
+    algo = cfg.algorithm
+    if not isinstance(algo, SacConfig):
         raise ValueError("only the Equi-RSAC learners (equi_rsac, rsac) start from an actor's weights")
-    if blob.algorithm != cfg.algorithm:
-        raise ValueError(f"the weights are a {blob.algorithm} policy, the learner trains {cfg.algorithm}")
+    if blob.algorithm != algo.name:
+        raise ValueError(f"the weights are a {blob.algorithm} policy, the learner trains {algo.name}")
     spec = PolicySpec.from_json(blob.config_json)
-    if spec.observation != cfg.observation:
+    if spec.observation != algo.observation:
         raise ValueError(
-            f"the weights' policy observes {spec.observation!r}, the learner's observes {cfg.observation!r}"
+            f"the weights' policy observes {spec.observation!r}, the learner's observes {algo.observation!r}"
         )
     try:
-        return fitting_state(build_actor(cfg.net), blob.tensors, blob.version)
+        return fitting_state(build_actor(algo.net), blob.tensors, blob.version)
     except ValueError as exc:
         raise ValueError(
             f"{exc}; the weights' network is group {spec.net.group}, image_embed {spec.net.image_embed}, "
-            f"lstm_hidden {spec.net.lstm_hidden}, the learner's group {cfg.net.group}, image_embed "
-            f"{cfg.net.image_embed}, lstm_hidden {cfg.net.lstm_hidden} (a clone of the run's --task and "
+            f"lstm_hidden {spec.net.lstm_hidden}, the learner's group {algo.net.group}, image_embed "
+            f"{algo.net.image_embed}, lstm_hidden {algo.net.lstm_hidden} (a clone of the run's --task and "
             "--learner-preset fits)"
         ) from None
 
@@ -94,4 +102,4 @@ def load_into(trainer: Trainer, state: dict[str, torch.Tensor]) -> None:
         sac.critic_target.load_state_dict(sac.critic.state_dict())
 
 
-__all__ = ["check_fits", "load_into", "read"]
+__all__ = ["check_fits", "load_into", "read", "supports"]

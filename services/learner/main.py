@@ -1,7 +1,7 @@
-"""`mea learner`: train recurrent SAC (Equi-RSAC) or GASv2 (`--algorithm gasv2`, a DreamerV2 world
+"""`mea learner`: train recurrent SAC (Equi-RSAC) or GASv2 (the gasv2 presets: a DreamerV2 world
 model with an imagination actor) from replay and broadcast versioned weights.
 
-The training (replay, sample-to-insert limiter, SAC updates, the replay gate's arithmetic) is the
+The training (replay, sample-to-insert limiter, the algorithm's updates, the replay gate's arithmetic) is the
 pure ``services.learner.core.trainer``; this shell wires it to the bus, the weights server, the
 checkpoints (``services.learner.checkpoint``) and the metrics (``services.learner.metrics``).
 
@@ -12,7 +12,7 @@ Threads
       it never drops), and ``EpisodeAck`` on ``learner/acks`` (the raw episode ids taken, so actors
       publish again only what never arrived; an id is stored once). It never waits on training, so
       the Zenoh receive thread is never held up.
-    * train (main thread): while the limiter allows, samples whole episodes, runs one SAC update, and
+    * train (main thread): while the limiter allows, samples a batch, runs one update, and
       every ``publish_every`` updates announces a new weights version; otherwise it waits (counted in
       ``mea_learner_wait_seconds_total``).
 
@@ -55,9 +55,13 @@ from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.scalars import ScalarLog
 from services.common.weights import WeightsServer
 from services.learner import checkpoint, init_actor
-from services.learner.config import PRESETS, LearnerConfig, build_trainer, default_run_id
-from services.learner.core.gasv2.policy import GasV2Spec
-from services.learner.core.policy import PolicySpec
+from services.learner.config import (
+    PRESETS,
+    LearnerConfig,
+    build_trainer,
+    default_run_id,
+    without_foreign_group,
+)
 from services.learner.metrics import UpdateRate, learner_metrics, record_gate, record_update, rejection_reason
 
 log = logging.getLogger(__name__)
@@ -74,9 +78,7 @@ class Learner:
             torch.set_num_threads(cfg.threads)
         self.lock = threading.Lock()  # the trainer's guard: ingest vs the training loop
         self.trainer = build_trainer(cfg, self.lock)
-        self.spec = (
-            GasV2Spec(cfg.dreamer) if cfg.algorithm == "gasv2" else PolicySpec(cfg.net, cfg.observation)
-        )
+        self.spec = cfg.algorithm.spec()
         self.mx = learner_metrics(ctx.metrics)
         self.mx["replay_bytes"].set(self.trainer.replay.nbytes)
         self.server = WeightsServer(ctx.bus, ctx.instance)
@@ -160,7 +162,7 @@ class Learner:
             self.mx["wait"].inc(waited)
             return False
         # on a GPU the losses come every metrics_every updates (trainer.py, "Devices"): keep the last read
-        self.last = info if self.trainer.settings.metrics_every == 1 else self.last | info
+        self.last = info if self.trainer.metrics_every == 1 else self.last | info
         rate = self._rate.tick(time.monotonic())
         record_update(self.mx, info, time.perf_counter() - t0, rate)
         if self.scalars is not None:
@@ -176,8 +178,9 @@ class Learner:
         self.version += 1
         checkpoint.record_published(self.ckpt_dir, self.run_id, self.version)
         self.published_at = self.trainer.updates
+        tensors = self.trainer.policy_tensors()
         blob = WeightsBlob.create(
-            self.version, self.cfg.algorithm, self.run_id, self.trainer.policy_tensors(), self.spec.to_json()
+            self.version, self.cfg.algorithm.name, self.run_id, tensors, self.spec.to_json()
         )
         payload = blob.encode()  # once, for the bus and the weights file
         self.server.publish(blob, payload)
@@ -288,8 +291,7 @@ def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None =
         core.publish_weights()
         core.start_ingest()
         ctx.detail = f"run {core.run_id}"
-        group = "-" if cfg.algorithm == "gasv2" else cfg.net.group
-        log.info("training", extra={"algorithm": cfg.algorithm, "group": group, "device": cfg.device, "run_id": core.run_id,
+        log.info("training", extra={"algorithm": cfg.algorithm.name, "group": cfg.algorithm.group, "device": cfg.device, "run_id": core.run_id,
                                     "version": core.version, "replay_bytes": core.trainer.replay.nbytes})  # fmt: skip
         try:
             core.loop()
@@ -306,7 +308,11 @@ def run(cfg: LearnerConfig, bus_factory: Callable[[ServiceConfig], Bus] | None =
 
 
 def main(argv: Sequence[str]) -> int:
-    return run(config.parse(LearnerConfig, PRESETS, argv, "mea learner", LearnerConfig.__doc__ or ""))
+    return run(
+        config.parse(
+            LearnerConfig, PRESETS, without_foreign_group(argv), "mea learner", LearnerConfig.__doc__ or ""
+        )
+    )
 
 
 __all__ = ["Learner", "main", "run"]

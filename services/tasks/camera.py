@@ -6,7 +6,8 @@ voxel-downsampled (so denser views don't pull the centroid), and a fixed number 
 per segment. Several views mean the gripper never hides an object during the approach.
 
 Also renders the baseline the paper compares against: the public Equi-RSAC observation, a
-top-down orthographic depth image centred on the gripper.
+top-down orthographic depth image centred on the gripper; and a third-person colour picture of the
+scene for videos (``SceneView``, ``scene_image``), which no policy observes.
 """
 
 from __future__ import annotations
@@ -49,6 +50,49 @@ class CameraSettings:
     """Near clipping plane (m)."""
     far: float = 2.5
     """Far clipping plane (m)."""
+
+
+@dataclass(frozen=True)
+class SceneView:
+    """A third-person colour camera for videos (pybullet's yaw/pitch convention, degrees)."""
+
+    size: int = 256
+    """Pixels per side."""
+    target: tuple[float, float, float] = WORKSPACE_CENTRE
+    """Point looked at."""
+    distance: float = 0.85
+    yaw_deg: float = 90.0
+    """90: from in front of the workspace, facing the arm's base (the arm comes in from the top)."""
+    pitch_deg: float = -45.0
+    fov_deg: float = 50.0
+
+
+def render_rgb(client: int, view: SceneView = SceneView()) -> np.ndarray:
+    """The scene as ``view`` sees it: (size, size, 3) uint8, pybullet's tiny renderer (no GPU, no
+    window; shapes with alpha 0 are skipped, as for the observation's cameras)."""
+    n = view.size
+    matrix = pb.computeViewMatrixFromYawPitchRoll(
+        view.target, view.distance, view.yaw_deg, view.pitch_deg, 0.0, 2
+    )
+    proj = pb.computeProjectionMatrixFOV(view.fov_deg, 1.0, 0.05, 10.0)
+    _, _, rgba, _, _ = pb.getCameraImage(
+        n, n, matrix, proj, renderer=pb.ER_TINY_RENDERER, flags=pb.ER_NO_SEGMENTATION_MASK,
+        physicsClientId=client,
+    )  # fmt: skip
+    return np.asarray(rgba, np.uint8).reshape(n, n, 4)[..., :3].copy()
+
+
+def scene_image(env, size: int = 256) -> np.ndarray:
+    """A third-person picture of ``env``'s scene: its own ``render_scene`` where it has one (the
+    general tasks show the arm and floor their cameras skip), else looking at its camera's target
+    from 30 degrees aside and higher up (the surgical task's oblique camera)."""
+    own = getattr(env, "render_scene", None)
+    if own is not None:
+        return own(size)
+    cam = env.settings.camera
+    view = SceneView(size=size, target=tuple(cam.target), distance=cam.distance, yaw_deg=cam.yaw_deg + 30.0,
+                     pitch_deg=-35.0, fov_deg=cam.fov_deg)  # fmt: skip
+    return render_rgb(env.client, view)
 
 
 @dataclass

@@ -25,13 +25,20 @@ from proto.actions import ACTION_DIM
 from services.tasks.camera import (
     Cameras,
     CameraSettings,
+    SceneView,
     paint_fingers,
     render_gripper_depth,
+    render_rgb,
     sample_fixed,
 )
-from services.tasks.robot import GRIPPER_LINKS, WORKSPACE, ControlSettings, Robot
+from services.tasks.robot import GRIPPER_LINKS, WORKSPACE, WRIST_LINK, ControlSettings, Robot
 
 SegmentParts = list[tuple[int, int | None]]  # (body id, link index or None for the whole body)
+
+HIDDEN = (1.0, 1.0, 1.0, 0.0)
+"""The floor's and the arm's colour: the observation's cameras skip them (alpha 0)."""
+SHOWN = {"floor": (0.82, 0.82, 0.78, 1.0), "arm": (0.72, 0.74, 0.8, 1.0)}
+"""Their colours in a third-person picture (``render_scene``)."""
 
 SETTLE_STEPS = 10
 """Physics steps the world rests after the arm is placed (``reset``, ``place_state``): objects
@@ -141,7 +148,7 @@ class ManipulationEnv:
             deterministicOverlappingPairs=1, physicsClientId=c,
         )  # fmt: skip
         self.floor = pb.loadURDF("plane.urdf", physicsClientId=c)
-        pb.changeVisualShape(self.floor, -1, rgbaColor=(1, 1, 1, 0), physicsClientId=c)  # not observed
+        pb.changeVisualShape(self.floor, -1, rgbaColor=HIDDEN, physicsClientId=c)  # not observed
         self.robot = Robot(c, settings.control)
         self.cameras = Cameras(c, settings.camera)
         self.segment_names = ("gripper", *task.object_names)
@@ -311,6 +318,21 @@ class ManipulationEnv:
             for link in GRIPPER_LINKS:
                 pb.changeVisualShape(body, link, rgbaColor=(0.6, 0.6, 0.6, 1), physicsClientId=c)
         return paint_fingers(image, pivot, self.robot.tcp(), yaw, self.robot.pad_gap(), 0.4)
+
+    def render_scene(self, size: int = 256) -> np.ndarray:
+        """A third-person colour picture (size, size, 3) uint8 of the scene with the floor and the arm
+        shown (``SceneView``): for videos, never observed. They are hidden again before it returns,
+        so the observation and the physics are as without it."""
+        c = self.client
+        shown = [(self.floor, -1, SHOWN["floor"])]
+        shown += [(self.robot.body, link, SHOWN["arm"]) for link in range(-1, WRIST_LINK)]
+        for body, link, rgba in shown:
+            pb.changeVisualShape(body, link, rgbaColor=rgba, physicsClientId=c)
+        try:
+            return render_rgb(c, SceneView(size=size))
+        finally:
+            for body, link, _ in shown:
+                pb.changeVisualShape(body, link, rgbaColor=HIDDEN, physicsClientId=c)
 
     def contacts(self) -> np.ndarray:
         out = np.zeros(len(self.task.object_names), bool)

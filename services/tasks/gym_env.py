@@ -10,6 +10,10 @@ Surgical Grasp Any (``SurgicalGraspGymEnv``) acts in ``Discrete(9)`` (``proto.di
 and adds ``image`` (the (3, 64, 64) uint8 DSA policy image, ``services.observation.dsa``),
 ``controller_state`` (1: the hybrid P-controller takes the next step, the action is ignored) and
 ``fsm_state`` to the observation; its points are in sim units (5 per real metre).
+
+``render_mode="rgb_array"``: ``render()`` returns a third-person colour picture of the scene
+((render_size, render_size, 3) uint8, ``services.tasks.camera.scene_image``), so gymnasium's
+wrappers (``RecordVideo``, which needs moviepy; ``RenderCollection``) record what the env does.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import numpy as np
 from gymnasium import spaces
 
 from services.tasks import EnvSettings, make_env
-from services.tasks.camera import CameraSettings
+from services.tasks.camera import CameraSettings, scene_image
 
 IDS = {"block_pull": "mea/BlockPull-v0", "block_pick": "mea/BlockPick-v0", "drawer_open": "mea/DrawerOpen-v0",
        "surgical_grasp_any": "mea/SurgicalGraspAny-v0"}  # fmt: skip
@@ -29,12 +33,28 @@ ENTRY_POINTS = {"surgical_grasp_any": "services.tasks.gym_env:SurgicalGraspGymEn
 """Tasks whose gymnasium class is not ``MeaTaskEnv``."""
 
 
+RENDER_MODES = ("rgb_array",)
+METADATA = {"render_modes": list(RENDER_MODES), "render_fps": 10}
+
+
+def _check_render_mode(render_mode: str | None) -> str | None:
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES} or None, not {render_mode!r}")
+    return render_mode
+
+
 class MeaTaskEnv(gym.Env):
-    metadata = {"render_modes": []}
+    metadata = METADATA
 
     def __init__(
-        self, task: str = "block_pull", points_per_segment: int = 256, depth_image: bool = False
+        self,
+        task: str = "block_pull",
+        points_per_segment: int = 256,
+        depth_image: bool = False,
+        render_mode: str | None = None,
+        render_size: int = 256,
     ) -> None:
+        self.render_mode, self.render_size = _check_render_mode(render_mode), render_size
         settings = EnvSettings(
             depth_image=depth_image, camera=CameraSettings(points_per_segment=points_per_segment)
         )
@@ -71,6 +91,10 @@ class MeaTaskEnv(gym.Env):
         o, reward, terminated, truncated, info = self.sim.step(np.asarray(action, dtype=np.float64))
         return self._obs(o), reward, terminated, truncated, {**self._info(o), **info}
 
+    def render(self) -> np.ndarray | None:
+        """The scene now, (render_size, render_size, 3) uint8, with ``render_mode="rgb_array"``."""
+        return scene_image(self.sim, self.render_size) if self.render_mode == "rgb_array" else None
+
     def close(self) -> None:
         self.sim.close()
 
@@ -78,9 +102,16 @@ class MeaTaskEnv(gym.Env):
 class SurgicalGraspGymEnv(gym.Env):
     """Surgical Grasp Any with its discrete action space (the paper's A_d)."""
 
-    metadata = {"render_modes": []}
+    metadata = METADATA
 
-    def __init__(self, points_per_segment: int = 256, domain_randomisation: bool = False) -> None:
+    def __init__(
+        self,
+        points_per_segment: int = 256,
+        domain_randomisation: bool = False,
+        render_mode: str | None = None,
+        render_size: int = 256,
+    ) -> None:
+        self.render_mode, self.render_size = _check_render_mode(render_mode), render_size
         from proto.discrete_actions import NAMES
         from services.tasks.surgical.settings import (
             FSM_STATES,
@@ -119,6 +150,8 @@ class SurgicalGraspGymEnv(gym.Env):
     def step(self, action):
         o, reward, terminated, truncated, info = self.sim.step(self.sim.discrete_action(int(action)))
         return self._obs(o), reward, terminated, truncated, {**MeaTaskEnv._info(o), **info}
+
+    render = MeaTaskEnv.render
 
     def close(self) -> None:
         self.sim.close()

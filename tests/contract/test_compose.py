@@ -27,8 +27,8 @@ from services.common import run_key
 from services.common.bus.zenoh_bus import ZenohConfig
 from services.common.config import ServiceConfig
 from services.common.metrics import DEFAULT_PORTS
-from services.learner.config import PRESETS as LEARNER_PRESETS
-from services.run_config import GASV2_PRESETS, RunConfig
+from services.learner.config import GASV2_PRESETS, preset_name
+from services.run_config import RunConfig
 from services.variants import network_group, variant
 
 pytestmark = pytest.mark.contract
@@ -119,7 +119,7 @@ def parse_command(argv: list[str]) -> tuple[str, Any]:
 
 def learner_preset_of_run(preset: str) -> str:
     """The `mea run --learner-preset` whose learner preset is ``preset`` (GASv2 presets map back)."""
-    return {v: k for k, v in GASV2_PRESETS.items()}.get(preset, preset)
+    return next((k for k in GASV2_PRESETS if preset_name("gasv2", k) == preset), preset)
 
 
 def settings_for(run: RunConfig) -> dict[str, str]:
@@ -138,7 +138,8 @@ def settings_for(run: RunConfig) -> dict[str, str]:
         "DEPTH_IMAGE_FLAG": "--depth-image" if v.depth_image else "--no-depth-image",
         "LEARNER_PRESET": preset,
         "LEARNER_DEVICE": run.learner_device,
-        "NET_GROUP": LEARNER_PRESETS[preset].net.group if v.algorithm == "gasv2" else network_group(run.task),
+        # a GASv2 learner has no symmetry group: it drops the flag (learner.config.without_foreign_group)
+        "NET_GROUP": "c4" if v.algorithm == "gasv2" else network_group(run.task),
         "OBSERVATION": v.observation,
         "AUGMENT_OBSERVATION": augment.observation if v.observation == "dsa" else v.observation,
         "MEA_ON": run.resolved_mea_on() if v.mea else "none",

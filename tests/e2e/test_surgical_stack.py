@@ -44,6 +44,6 @@ def test_mea_gasv2_run_trains_on_mea_copies_and_stops_at_the_budget(tmp_path):
     assert final and final[-1]["version"] > 0 and "grasp_score" in final[-1]
     assert 0.0 <= final[-1]["grasp_score"] <= 1.0 and 0.0 <= final[-1]["success_rate"] <= 1.0
     saved = json.loads((run_dir / "learner" / "learner.json").read_text())
-    assert saved["algorithm"] == "gasv2" and saved["observation"] == "dsa"
+    assert saved["algorithm"]["name"] == "gasv2" and saved["algorithm"]["observation"] == "dsa"
     _, replay, meta = checkpoint.load(run_dir / "learner" / "checkpoints")
     assert meta["version"] >= final[-1]["version"]

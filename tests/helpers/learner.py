@@ -14,6 +14,8 @@ from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.learner.config import LearnerConfig, build_trainer
 from services.learner.core.networks import NetConfig
+from services.learner.core.sac.algorithm import SacConfig
+from services.learner.core.sac.config import SacSettings
 from services.learner.core.trainer import Trainer
 from tests.helpers import build_episode
 
@@ -63,9 +65,12 @@ def learner_episode(
     return ep
 
 
-def tiny_learner_config(run_dir: Path, service: ServiceConfig, **kw) -> LearnerConfig:
+def tiny_learner_config(
+    run_dir: Path, service: ServiceConfig, *, net: NetConfig = TINY_NET, sac: SacSettings | None = None, **kw
+) -> LearnerConfig:
+    """A recurrent SAC learner of ``net`` with ``sac`` settings; ``kw`` overrides its other fields."""
     defaults = dict(
-        net=TINY_NET,
+        algorithm=SacConfig(net=net, sac=sac or SacSettings()),
         batch_size=4,
         seq_len=20,
         replay_capacity=2_000,

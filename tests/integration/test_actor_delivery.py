@@ -38,6 +38,7 @@ def ids_within(sub, n: int, timeout: float) -> list[str]:
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_unacknowledged_episodes_are_published_again_when_an_augmenter_restarts():
     hub = Hub()
     learner = member(hub, "learner", "learner-0")

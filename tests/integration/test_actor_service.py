@@ -12,7 +12,7 @@ from services.actor.main import run
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 
 @pytest.mark.timeout(180)

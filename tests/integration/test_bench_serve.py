@@ -21,6 +21,7 @@ REQUESTS, SWAPS = 30, 2
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_bench_serve_prints_one_sane_json_object(capsys):
     argv = ["bench", "serve", "--requests", str(REQUESTS), "--warmup", "5", "--presets", "cpu-small",
             "--swaps", str(SWAPS), "--observations", "40", "--episode-steps", "10", "--timeout-s", "30",

@@ -12,6 +12,7 @@ pytestmark = pytest.mark.integration
 
 
 @pytest.mark.timeout(240)
+@pytest.mark.slow
 def test_bench_tasks_prints_one_json_object(capsys):
     argv = ["bench", "tasks", "--tasks", "block_pick", "--episodes", "2", "--prior-episodes", "1", "--workers", "2",
             "--json"]  # fmt: skip

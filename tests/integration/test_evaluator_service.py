@@ -37,6 +37,7 @@ def latest_beat(status, beats: list) -> Heartbeat | None:
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.slow
 def test_evaluator_reports_versions_on_held_out_seeds_at_the_env_step_cadence(tmp_path):
     import torch
 
@@ -289,9 +290,9 @@ def test_the_evaluation_at_the_budget_runs_final_episodes_held_out_seeds(tmp_pat
 
     monkeypatch.setattr(evaluation, "run_episode", fake_run_episode)
     monkeypatch.setattr(policy_module, "PolicyRuntime", FakeRuntime)
-    published: list = []
+    published: list = []  # videos 0: a fake env cannot be filmed
     ev, gate_tracker = _cadence_evaluator(tmp_path, episodes=3, final_episodes=6, every_env_steps=1000,
-                                          final_env_steps=2500)  # fmt: skip
+                                          final_env_steps=2500, videos=0)  # fmt: skip
     ev.ctx.bus = SimpleNamespace(publish=lambda topic, msg, source: published.append(msg))
     ev.env.segment_names = ("gripper", "object_a", "object_b")
     weights = FakeWeights()

@@ -18,6 +18,7 @@ pytestmark = pytest.mark.integration
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_world_model_losses_fall_on_recorded_surgical_episodes():
     torch.set_num_threads(1)
     actor = Actor(ActorConfig(task="surgical_grasp_any"), "actor-0")

@@ -19,7 +19,7 @@ from services.common.config import ServiceConfig
 from services.learner import init_actor
 from services.learner.core.networks import build_actor
 from services.learner.core.policy import PolicySpec, actor_tensors
-from services.learner.core.sac import SacSettings
+from services.learner.core.sac.config import SacSettings
 from tests.helpers.learner import TINY_NET, learner_episode, start_learner, tiny_learner_config, tiny_trainer
 
 pytestmark = pytest.mark.integration

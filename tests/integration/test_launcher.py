@@ -15,7 +15,7 @@ import pytest
 
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 ROOT = Path(__file__).resolve().parents[2]
 
 

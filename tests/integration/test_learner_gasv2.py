@@ -1,4 +1,4 @@
-"""The learner service with `--algorithm gasv2` on the in-process bus: the same contract as Equi-RSAC
+"""The learner service with a gasv2 preset on the in-process bus: the same contract as Equi-RSAC
 (version 0 at start, versioned weights every publish_every updates, the limiter, refused input
 counted, a checkpoint on exit and a resume that continues the lineage), with GASv2's published
 policy (encoder, RSSM, actor) acting through the consumers' PolicyRuntime."""
@@ -88,13 +88,17 @@ def test_gasv2_learner_trains_publishes_a_latent_policy_and_resumes_its_lineage(
 
 def test_gasv2_presets_observe_dsa_and_train_on_the_configured_device():
     from services.learner.config import LearnerConfig, build_trainer
+    from services.learner.core.gasv2.algorithm import GasV2Config
+    from services.learner.core.sac.algorithm import SacConfig
 
     with pytest.raises(ValueError, match="device must be cpu, cuda or cuda:N"):
         LearnerConfig(device="gpu")  # every learner may leave the CPU (tests/unit/test_learner_device.py)
     with pytest.raises(ValueError, match="starts from a gasv2 preset"):
-        LearnerConfig(algorithm="gasv2")  # the SAC paper preset's fields do not fit its windows
+        SacConfig(name="gasv2")  # the SAC presets' config does not fit its windows
     with pytest.raises(ValueError, match="gasv2 learner's only"):
-        LearnerConfig(observation="dsa")
+        SacConfig(observation="dsa")
+    with pytest.raises(ValueError, match="observes dsa"):
+        GasV2Config(observation="voxel")
     trainer = build_trainer(dataclasses.replace(PRESETS["gasv2-smoke"], device="cpu"))
     assert str(trainer.agent.device) == "cpu" and set(trainer.policy_tensors()) == set(
         trainer.agent.policy.state_dict()

@@ -94,6 +94,7 @@ class Serving:
         self.thread.join(10)
 
 
+@pytest.mark.slow
 def test_the_sim_robot_through_serve_runs_the_evaluators_episodes_action_for_action(tmp_path):
     hub, task = Hub(), "block_pull"
     robot = SimRobot(task, EvaluatorConfig().env_settings())
@@ -167,6 +168,7 @@ def test_a_gasv2_policy_on_the_surgical_arm_follows_the_executed_actions(tmp_pat
     )  # the controller acted
 
 
+@pytest.mark.slow
 def test_swaps_under_load_never_mix_versions_in_an_episode_nor_go_back(tmp_path):
     hub = Hub()
     learner_bus = InProcBus(hub)

@@ -17,6 +17,7 @@ pytestmark = pytest.mark.integration
 
 
 @pytest.mark.timeout(240)
+@pytest.mark.slow
 def test_surgical_demos_augment_into_copies_that_validate_on_the_wire(tmp_path):
     out = tmp_path / "surgical.mcap"
     assert main(["demos", "--task", "surgical_grasp_any", "--n", "2", "--out", str(out)]) == 0

@@ -10,6 +10,7 @@ from services.actor.rollout import Actor
 
 
 @pytest.mark.parametrize("random_steps", [0, 1, 60])
+@pytest.mark.slow
 def test_random_episodes_come_first_until_the_prefill_is_done(random_steps):
     actor = Actor(ActorConfig(task="block_pull", policy="expert", random_steps=random_steps), "actor-0")
     try:

@@ -41,6 +41,7 @@ def demo(env) -> Episode:
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_the_demonstration_and_its_copies_replay_within_the_tolerances(env, demo):
     tol = SurgicalTolerance()
     raw = audit_surgical(env, demo, demo, phase_split(demo, S), tol)

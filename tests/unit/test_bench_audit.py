@@ -13,6 +13,7 @@ pytestmark = pytest.mark.unit
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.slow
 def test_cli_prints_one_json_object(capsys):
     argv = [
         "--task",
@@ -57,6 +58,7 @@ def test_cli_prints_one_json_object(capsys):
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.slow
 def test_cli_audits_surgical_copies_against_their_noise_floor(capsys):
     argv = ["--task", "surgical_grasp_any", "--episodes", "1", "--copies", "3", "--json"]
     assert main(argv) == 0

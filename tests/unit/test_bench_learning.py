@@ -99,6 +99,7 @@ def _no_training(*args, **kwargs):
     raise AssertionError(f"no run should be trained: {args}")
 
 
+@pytest.mark.slow
 def test_the_comparison_from_finished_runs_is_hand_computed_and_nothing_is_trained(
     tmp_path, monkeypatch, capsys
 ):
@@ -185,6 +186,7 @@ def test_the_comparison_from_finished_runs_is_hand_computed_and_nothing_is_train
     assert "AUC (mean)" in text and "[0.4, 0.6]" in text  # intervals print as [lo, hi]
 
 
+@pytest.mark.slow
 def test_arms_within_noise_are_said_to_be_and_the_bootstrap_seed_reproduces_the_result(tmp_path, monkeypatch):
     monkeypatch.setattr(subprocess, "Popen", _no_training)
     out = tmp_path / "bench"

@@ -60,6 +60,7 @@ def test_identical_arms_give_probability_of_improvement_one_half_and_are_within_
     assert c.within_noise
 
 
+@pytest.mark.slow
 def test_separated_arms_are_not_within_noise_and_improvement_is_certain():
     low, high = [0.0, 0.02, 0.04], [0.9, 0.92, 0.94]
     up = stats.compare(high, low, BOOT)

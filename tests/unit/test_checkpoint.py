@@ -120,8 +120,8 @@ def test_a_trainer_round_trips_with_its_lineage(tmp_path):
     assert checkpoint.restore_trainer(tmp_path, b) == lineage
     assert (b.updates, b.env_steps, b.limiter.samples) == (2, 18, 2)
     assert (len(b.replay), b.replay.episode_ids()) == (len(a.replay), a.replay.episode_ids())
-    for name, tensor in a.sac.state_dict()["actor"].items():
-        assert torch.equal(tensor, b.sac.state_dict()["actor"][name]), name
+    for name, tensor in a.agent.state_dict()["actor"].items():
+        assert torch.equal(tensor, b.agent.state_dict()["actor"][name]), name
     assert (b.rng.random(4) == a.rng.random(4)).all()
 
 

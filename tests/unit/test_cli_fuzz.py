@@ -62,6 +62,7 @@ STARTS = {
     "audit": ["services.bench.audit:run_audit"],
     "demos": ["services.actor.demos:record"],
     "bench": [f"{module}:run" for module, _, _ in BENCHES.values()],
+    "play": ["services.play:write_video"],  # every check ran: the video was about to be written
 }
 """What each command calls to start its long-running work (replaced in these tests)."""
 
@@ -119,6 +120,10 @@ def command_flags(command: str) -> dict[str, list[str]]:
             "--interp": ["hold", "linear"],
             "--title": ["t"],
         }
+    if command == "play":
+        return {"--out": ["out.mp4", "x.gif"], "--recording": ["x.mcap", "afile"], "--version": ["1"],
+                "--episodes": ["1"], "--seed": ["0"], "--task": ["block_pull"], "--size": ["128"],
+                "--fps": ["10"], "--no-replay": []}  # fmt: skip
     return {}
 
 
@@ -140,7 +145,7 @@ def argv_of(draw, command: str, flags: dict[str, list[str]], bench_flags: dict[s
         head, flags = [name], bench_flags.get(name, {})
     elif command == "recording":
         head = [draw(st.sampled_from(["check", "check", "check", "nope", "--help"]))]
-    elif command == "plot":
+    elif command in ("plot", "play"):
         head = draw(st.lists(st.sampled_from(PATHS), max_size=2))
     parts: list[str] = []
     if draw(st.integers(0, 9)) == 0:
@@ -299,6 +304,7 @@ def test_every_command_is_fuzzed_and_the_cases_add_up():
 
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("command", sorted(COMMANDS))
+@pytest.mark.slow
 def test_random_command_lines_never_crash_write_outside_or_leave_processes(command, tmp_path, monkeypatch):
     for spec in STARTS.get(command, []):
         module, _, name = spec.partition(":")

@@ -85,6 +85,10 @@ REFUSED = [
     (["plot"], "mea plot: the following arguments are required: RUN_DIR"),
     (["nope"], "mea: unknown command 'nope'; choose from run, router"),
     (["learner", "--preset", "cpu-small", "--batch-size", "-"], "mea learner: --batch-size INT:"),
+    # the algorithm's own config: its checks, and another algorithm's flags
+    (["learner", "--algorithm", "gasv2"], "mea learner: --algorithm 'gasv2' starts from a gasv2 preset"),
+    (["learner", "--preset", "gasv2", "--chunk-length", "0"], "mea learner: chunk_length must be >= 1"),
+    (["learner", "--dreamer.deter", "3"], "mea learner: unrecognized option(s) --dreamer.deter 3"),
 ]
 
 
@@ -121,6 +125,7 @@ def test_an_os_error_is_one_line_with_exit_code_1_and_writes_nothing(here, capsy
     assert snapshot(here) == before and not Path("/sys/d.mcap.tmp").exists()
 
 
+@pytest.mark.slow
 def test_a_busy_listen_port_is_one_line_and_leaves_no_run_directory(tmp_path):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -163,6 +168,7 @@ def test_every_help_names_the_presets_correctly(capsys):
     )
 
 
+@pytest.mark.slow
 def test_pybullet_banner_never_reaches_the_terminal():
     """pybullet prints its build time from C when imported; `mea` output shows only its own lines."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))

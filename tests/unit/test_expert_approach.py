@@ -66,6 +66,7 @@ def test_safe_height_is_above_meas_lz():
 
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("style", STYLES)
+@pytest.mark.slow
 def test_experts_succeed(recorded, style):
     task, runs = recorded
     ok = [s for s in SEEDS if runs[(style, s)]["success"]]
@@ -75,6 +76,7 @@ def test_experts_succeed(recorded, style):
 
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("style", STYLES)
+@pytest.mark.slow
 def test_non_trivial_phase_is_several_steps_long(recorded, style):
     task, runs = recorded
     settings = MeaSettings()
@@ -84,6 +86,7 @@ def test_non_trivial_phase_is_several_steps_long(recorded, style):
 
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("style", STYLES)
+@pytest.mark.slow
 def test_approach_travels_above_lz_unclipped_then_descends_vertically(recorded, style):
     """Until the pivot first goes below L_z: no command clipped (the transition prior holds), the
     pivot stays at or above SAFE_Z, and the step that crosses L_z is a straight descent."""

@@ -73,6 +73,7 @@ def line_world_batch(B: int, L: int, g: torch.Generator) -> ChunkBatch:
     return ChunkBatch(images, actions, rewards, discounts, is_first, mask.clone(), mask, torch.zeros(B))
 
 
+@pytest.mark.slow
 def test_world_model_learns_a_line_world():
     agent = GasV2Agent(FAST, seed=0)
     held_out = line_world_batch(32, 6, torch.Generator().manual_seed(123))
@@ -143,6 +144,7 @@ def action_probs(policy: LatentPolicy) -> torch.Tensor:
     return logits.softmax(-1)[0]
 
 
+@pytest.mark.slow
 def test_imagination_actor_finds_the_rewarded_action():
     agent = GasV2Agent(FAST, seed=0)
     assert int(action_probs(agent.policy).argmax()) != BEST  # not by luck of the initialisation

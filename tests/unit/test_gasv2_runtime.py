@@ -61,6 +61,7 @@ def blob_of(agent: GasV2Agent, version: int = 0) -> WeightsBlob:
     return WeightsBlob.create(version, "gasv2", "run-1", tensors, GasV2Spec(agent.cfg).to_json())
 
 
+@pytest.mark.slow
 def test_runtime_sees_what_the_learner_trains_on():
     """Stepping the runtime through an episode, told each executed action (the controller's during
     the approach), gives the same logits as the published policy over the replay's window of it."""
@@ -92,6 +93,7 @@ def test_runtime_sees_what_the_learner_trains_on():
             runtime.executed(ep.actions[t])
 
 
+@pytest.mark.slow
 def test_runtime_tracks_the_jaw_of_its_own_actions():
     agent = GasV2Agent(CFG, seed=1)
     runtime = LatentRuntime(deterministic=False, generator=torch.Generator().manual_seed(0))

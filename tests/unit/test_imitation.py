@@ -27,7 +27,7 @@ from services.evaluator.config import EvaluatorConfig
 from services.learner.core.batch import to_batch
 from services.learner.core.policy import PolicyRuntime
 from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac import bc_loss
+from services.learner.core.sac.losses import bc_loss
 from services.plan import augmenter_config, learner_config
 from services.tasks import make_env
 
@@ -45,6 +45,7 @@ def setting():
     return rc, learner, demos, replay, counts
 
 
+@pytest.mark.slow
 def test_the_run_s_two_demos_and_their_copies_fill_the_replay(setting):
     rc, learner, demos, replay, counts = setting
     seeds = [int(d.seed) for d in demos]
@@ -53,12 +54,17 @@ def test_the_run_s_two_demos_and_their_copies_fill_the_replay(setting):
     assert all(d.is_demo and d.succeeded for d in demos)
     assert counts["episodes"] == 2 * (1 + ROTATIONS)
     assert counts["transitions"] == (1 + ROTATIONS) * sum(d.num_steps for d in demos)
-    assert learner.net.group == "c4" and learner.observation == "voxel" and learner.net.image_size == 84
+    algo = learner.algorithm
+    assert algo.net.group == "c4" and algo.observation == "voxel" and algo.net.image_size == 84
 
 
+@pytest.mark.slow
 def test_cloning_two_demos_fits_them_and_the_clone_replays_their_actions_on_their_seeds(setting):
     rc, learner, demos, replay, _ = setting
-    fast = dataclasses.replace(learner, sac=dataclasses.replace(learner.sac, lr=1e-3))
+    algo = learner.algorithm
+    fast = dataclasses.replace(
+        learner, algorithm=dataclasses.replace(algo, sac=dataclasses.replace(algo.sac, lr=1e-3))
+    )
     actor, before, after, _ = clone(replay, fast, seed=0, updates=400, batch=8, tag="test")
     assert before > 1.0, before  # an untrained actor is far from the demos
     assert after < before / 20, (before, after)
@@ -77,7 +83,7 @@ def test_cloning_two_demos_fits_them_and_the_clone_replays_their_actions_on_thei
             obs = env.reset(int(demo.seed))
             errors = []
             for t in range(5):
-                image = policy_input(obs, learner.observation)
+                image = policy_input(obs, algo.observation)
                 assert np.array_equal(image, stored[t])  # the same input the clone trained on
                 errors.append(float(np.abs(runtime.act(image) - demo.actions[t]).max()))
                 obs, *_ = env.step(demo.actions[t])
@@ -86,6 +92,7 @@ def test_cloning_two_demos_fits_them_and_the_clone_replays_their_actions_on_thei
         env.close()
 
 
+@pytest.mark.slow
 def test_batches_drawn_with_demo_fraction_hold_the_demos_and_the_bc_term_sees_only_them(setting):
     rc, learner, demos, _, _ = setting
     settings = augmenter_config(rc, ServiceConfig()).augment
@@ -96,7 +103,7 @@ def test_batches_drawn_with_demo_fraction_hold_the_demos_and_the_bc_term_sees_on
         randoms.append(b.finish(actor.episode_id(b)))
     actor.env.close()
     replay = SequenceReplay(
-        20_000, image_size=84, seq_len=learner.seq_len, channels=learner.net.in_channels, seed=0
+        20_000, image_size=84, seq_len=learner.seq_len, channels=learner.algorithm.net.in_channels, seed=0
     )
     family = {}  # stored episode id -> the raw episode it was made from
     for ep in [*demos, *randoms]:

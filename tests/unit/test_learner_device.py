@@ -28,7 +28,9 @@ from services.learner.config import LearnerConfig, build_trainer, check_device
 from services.learner.core.batch import to_batch
 from services.learner.core.networks import build_actor, build_critic
 from services.learner.core.policy import PolicyRuntime
-from services.learner.core.sac import RecurrentSAC, SacSettings
+from services.learner.core.sac.agent import RecurrentSAC
+from services.learner.core.sac.algorithm import SacConfig
+from services.learner.core.sac.config import SacSettings
 from services.learner.core.trainer import MetricsWindow, Trainer
 from services.run_config import RunConfig, read_resume
 from tests.helpers.learner import SIZE, TINY_NET, learner_episode, start_learner, tiny_learner_config
@@ -43,7 +45,7 @@ needs_cuda = [
     ),
 ]
 DEVICES = ["cpu", pytest.param("cuda", marks=needs_cuda)]
-OWN_FILES = ("sac.py", "trainer.py", "batch.py", "tensors.py")
+OWN_FILES = ("agent.py", "losses.py", "algorithm.py", "trainer.py", "batch.py", "tensors.py")
 """The update loop's own modules: none of them may wait for the device between metric reads."""
 
 
@@ -140,8 +142,8 @@ def test_cuda_where_there_is_none_is_refused_naming_the_option(name):
 @pytest.mark.parametrize("algorithm", ["equi_rsac", "rsac"])
 def test_every_sac_learner_accepts_the_cpu_and_names_its_device(algorithm):
     group = "c4" if algorithm == "equi_rsac" else "none"
-    cfg = LearnerConfig(algorithm=algorithm, net=dataclasses.replace(TINY_NET, group=group), device="cpu")
-    assert cfg.trainer_settings().metrics_every == 1  # the CPU reads each update's numbers, as before
+    cfg = LearnerConfig(SacConfig(algorithm, net=dataclasses.replace(TINY_NET, group=group)), device="cpu")
+    assert cfg.metrics_every == 1  # the CPU reads each update's numbers, as before
     check_device("cpu", "--device")  # no exception
 
 
@@ -150,7 +152,7 @@ def test_every_sac_learner_accepts_the_cpu_and_names_its_device(algorithm):
 @pytest.mark.skipif(not CUDA, reason=f"CUDA is absent here (torch {torch.__version__})")
 def test_cuda_is_accepted_where_it_is_and_reads_metrics_every_tensorboard_point(name):
     cfg = LearnerConfig(device=name, tensorboard_every=7)
-    assert cfg.trainer_settings().metrics_every == 7
+    assert cfg.metrics_every == 7
     assert RunConfig(learner_device=name).learner_device == name
     with pytest.raises(ValueError, match=r"CUDA device\(s\), cuda:0"):
         LearnerConfig(device=f"cuda:{torch.cuda.device_count()}")
@@ -215,7 +217,7 @@ def test_the_metrics_window_gives_the_means_of_what_it_was_given_and_starts_agai
 def test_reading_every_n_updates_trains_the_same_and_reports_the_means():
     every, steps = 3, 6
     eager, lazy = filled_trainer(), filled_trainer()
-    lazy.settings = dataclasses.replace(lazy.settings, metrics_every=every)
+    lazy.metrics_every = every
     per_update, reads = [], []
     for i in range(steps):
         torch.manual_seed(100 + i)
@@ -231,7 +233,7 @@ def test_reading_every_n_updates_trains_the_same_and_reports_the_means():
     for r, window in zip(reads, (per_update[:every], per_update[every:]), strict=True):
         for key in ("critic_loss", "actor_loss", "alpha", "q1", "entropy", "actor_grad_norm"):
             assert r[key] == pytest.approx(np.mean([u[key] for u in window]), rel=1e-5, abs=1e-7), key
-    for p, q in zip(eager.sac.actor.parameters(), lazy.sac.actor.parameters(), strict=True):
+    for p, q in zip(eager.agent.actor.parameters(), lazy.agent.actor.parameters(), strict=True):
         assert torch.equal(p, q)  # the same training, bit for bit: only the reading differs
 
 
@@ -267,12 +269,12 @@ def test_a_checkpoint_resumes_on_another_device_with_the_same_actor(tmp_path, tr
     # the same weights bit for bit; outputs as close as fp32 kernels of two devices get (cuDNN's may differ)
     with full_fp32():
         assert torch.allclose(
-            actor_output(resumed.sac.actor), actor_output(trainer.sac.actor), rtol=1e-4, atol=1e-4
+            actor_output(resumed.agent.actor), actor_output(trainer.agent.actor), rtol=1e-4, atol=1e-4
         )
-    state, ref = resumed.sac.actor.state_dict(), trainer.sac.actor.state_dict()
+    state, ref = resumed.agent.actor.state_dict(), trainer.agent.actor.state_dict()
     assert all(torch.equal(state[k].cpu(), ref[k].cpu()) for k in ref)
-    assert resumed.sac.log_alpha.device.type == resumed_on
-    opt_state = next(iter(resumed.sac.critic_opt.state.values()))
+    assert resumed.agent.log_alpha.device.type == resumed_on
+    opt_state = next(iter(resumed.agent.critic_opt.state.values()))
     assert opt_state["exp_avg"].device.type == resumed_on  # the optimiser's moments moved with it
     assert resumed.step() is not None and resumed.updates == 4  # and it trains on
 
@@ -286,7 +288,7 @@ def test_published_weights_are_numpy_on_the_cpu_and_act_like_the_trained_actor(d
     actor = build_actor(TINY_NET)
     actor.load_state_dict({k: torch.from_numpy(v) for k, v in tensors.items()})
     with full_fp32():
-        assert torch.allclose(actor_output(actor), actor_output(trainer.sac.actor), rtol=1e-4, atol=1e-4)
+        assert torch.allclose(actor_output(actor), actor_output(trainer.agent.actor), rtol=1e-4, atol=1e-4)
 
 
 def _leaves(x):
@@ -330,12 +332,10 @@ def _run_learner(tmp_path: Path, device: str, resume: bool, max_updates: int) ->
 
 def test_the_learner_reading_metrics_every_n_updates_reports_them_and_resumes(tmp_path, monkeypatch):
     # on the CPU the learner reads each update; force the GPU's every-N reading to run its path here
-    original = LearnerConfig.trainer_settings
-    monkeypatch.setattr(LearnerConfig, "trainer_settings",
-                        lambda self: dataclasses.replace(original(self), metrics_every=3))  # fmt: skip
+    monkeypatch.setattr(LearnerConfig, "metrics_every", property(lambda self: 3))
     first = _run_learner(tmp_path, "cpu", resume=False, max_updates=7)
     assert first["updates"] == 7 and np.isfinite(first["critic_loss"])  # read at update 6, kept after
-    assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+    assert list((tmp_path / "tb").rglob("events.out.tfevents.*"))
     second = _run_learner(tmp_path, "cpu", resume=True, max_updates=10)
     assert second["updates"] == 10 and np.isfinite(second["critic_loss"])
 
@@ -358,13 +358,13 @@ def test_a_gpu_run_resumes_on_the_cpu_and_back(tmp_path):
 @pytest.mark.parametrize("device", DEVICES)
 def test_updates_between_metric_reads_read_nothing_back_from_the_device(device, monkeypatch):
     eager = filled_trainer(device)
-    eager.settings = dataclasses.replace(eager.settings, metrics_every=1)  # a GPU's default reads every N
+    eager.metrics_every = 1  # a GPU's default reads every N
     with reads_back(monkeypatch, device) as reads:
         assert eager.step() is not None
-    assert any(r.startswith("sac.py:") for r in reads)  # each update's floats: what a GPU must not do
+    assert any(r.startswith("agent.py:") for r in reads)  # each update's floats: what a GPU must not do
 
     lazy = filled_trainer(device)
-    lazy.settings = dataclasses.replace(lazy.settings, metrics_every=3)
+    lazy.metrics_every = 3
     lazy.step()  # update 1
     with reads_back(monkeypatch, device) as reads:
         unread = lazy.step()  # update 2
@@ -385,7 +385,7 @@ def test_prepare_device_leaves_the_cpu_precision_alone():
 def test_cuda_updates_between_metric_reads_never_synchronise_in_the_loops_own_code():
     # equal lengths: no padding, so the encoders' masked path (its own synchronisations) stays out
     trainer = filled_trainer("cuda", same_length=True, tensorboard_every=4)
-    assert trainer.settings.metrics_every == 4 and trainer.sac.device.type == "cuda"
+    assert trainer.metrics_every == 4 and trainer.agent.device.type == "cuda"
     assert torch.get_float32_matmul_precision() == "high" and torch.backends.cudnn.allow_tf32  # TF32
     assert trainer.step() is not None  # update 1 warms up cuDNN, cuBLAS and the allocators
     torch.cuda.synchronize()
@@ -399,7 +399,7 @@ def test_cuda_updates_between_metric_reads_never_synchronise_in_the_loops_own_co
     assert all(set(info) == {"batch_demo_share", "batch_reward_transitions"} for info in unread)
     syncs = [(Path(w.filename).name, w.lineno) for w in caught if "synchronizing" in str(w.message)]
     print("host synchronisations in two updates (file, line):", sorted(set(syncs)))  # pytest -rP shows it
-    # sac.py's lines also carry what its network calls and backward passes do; these call nothing
+    # agent.py's lines also carry what its network calls and backward passes do; these call nothing
     assert not [s for s in syncs if s[0] in ("trainer.py", "batch.py", "tensors.py")]
     info = trainer.step()  # update 4 reads the means of updates 1 to 4
     assert np.isfinite(info["critic_loss"]) and "alpha" in info

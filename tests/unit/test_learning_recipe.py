@@ -30,7 +30,7 @@ from services.learner.core.networks import build_actor, build_critic
 from services.learner.core.policy import images_from_codes
 from services.learner.core.privileged import STATE_DIM
 from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac import RecurrentSAC
+from services.learner.core.sac.agent import RecurrentSAC
 from tests.helpers import build_episode
 
 pytestmark = pytest.mark.unit
@@ -71,10 +71,12 @@ def state_rows(c: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("preset_name", ["cpu-small", "cpu-small-state"])
+@pytest.mark.slow
 def test_cpu_recipe_learns_the_demonstrated_action_among_failures(preset_name: str):
     preset = PRESETS[preset_name]
+    algo = preset.algorithm
     net = dataclasses.replace(
-        preset.net, image_size=SIZE, encoder=((2, 3, 1),), final_kernel=6, image_embed=16, action_embed=8,
+        algo.net, image_size=SIZE, encoder=((2, 3, 1),), final_kernel=6, image_embed=16, action_embed=8,
         lstm_hidden=16, mlp_hidden=(16, 16),
     )  # fmt: skip
     torch.manual_seed(0)
@@ -90,11 +92,11 @@ def test_cpu_recipe_learns_the_demonstrated_action_among_failures(preset_name: s
     insert(100_002, True, c=-1)
     for k in range(300):
         insert(k, False)
-    sac = RecurrentSAC(build_actor(net), build_critic(net), preset.sac)
+    sac = RecurrentSAC(build_actor(net), build_critic(net), algo.sac)
     for _ in range(300):
         sample = replay.sample(
             preset.batch_size, rng, demo_fraction=preset.demo_fraction,
-            successes_as_demos=preset.successes_as_demos, trim=preset.trim_batches,
+            successes_as_demos=preset.successes_as_demos, trim=algo.trim_batches,
         )  # fmt: skip
         sac.update(to_batch(sample))
     for c in (-1, 1):

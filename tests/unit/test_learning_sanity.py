@@ -18,7 +18,9 @@ from services.learner.core.batch import to_batch
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import images_from_codes
 from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac import RecurrentSAC, SacSettings, deterministic_action
+from services.learner.core.sac.agent import RecurrentSAC
+from services.learner.core.sac.config import SacSettings
+from services.learner.core.sac.losses import deterministic_action
 from tests.helpers import build_episode
 
 SIZE = 12
@@ -62,6 +64,7 @@ def policy_means(actor) -> dict[int, np.ndarray]:
 
 
 @pytest.mark.parametrize("group", ["none", "c4"])
+@pytest.mark.slow
 def test_recurrent_sac_learns_an_action_that_needs_memory(group):
     torch.manual_seed(0)
     rng = np.random.default_rng(0)

@@ -18,7 +18,7 @@ from services.learner.core.policy import (
     check_observation,
     images_from_codes,
 )
-from services.learner.core.sac import deterministic_action
+from services.learner.core.sac.losses import deterministic_action
 from tests.helpers.learner import SIZE, TINY_NET
 
 
@@ -94,7 +94,7 @@ def test_blobs_that_do_not_fit_are_refused_and_the_old_weights_kept():
         rt.load(dataclasses.replace(good, config_json="{}"))
     assert rt.version == 1
     rt.load(good)  # a new spec rebuilds the network
-    assert rt.version == 2 and rt.actor.cfg.lstm_hidden == 16
+    assert rt.version == 2 and rt.runtime.actor.cfg.lstm_hidden == 16
 
 
 def test_acting_without_weights_is_an_error():
@@ -106,14 +106,14 @@ def test_a_blob_that_does_not_fit_leaves_the_running_policy_untouched():
     torch.manual_seed(8)
     rt = PolicyRuntime(deterministic=True)
     rt.load(blob_for(build_actor(TINY_NET), version=1))
-    before = {k: v.clone() for k, v in rt.actor.state_dict().items()}
+    before = {k: v.clone() for k, v in rt.runtime.actor.state_dict().items()}
     bad = blob_for(build_actor(TINY_NET), version=2)
     name = next(iter(bad.tensors))
     tensors = {k: (np.zeros(3, np.float32) if k == name else v) for k, v in bad.tensors.items()}
     with pytest.raises(ValueError, match="do not fit"):
         rt.load(WeightsBlob.create(2, "equi_rsac", "run-1", tensors, bad.config_json))
     assert rt.version == 1
-    for k, v in rt.actor.state_dict().items():
+    for k, v in rt.runtime.actor.state_dict().items():
         assert torch.equal(v, before[k]), k
 
 

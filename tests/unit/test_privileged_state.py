@@ -13,7 +13,7 @@ import torch
 
 from services.learner.core.networks import PRESETS, StateCritic, build_critic
 from services.learner.core.privileged import STATE_DIM, critic_state, episode_critic_state, yaw_of
-from services.learner.core.sac import Batch
+from services.learner.core.sac.losses import Batch
 from tests.helpers import build_episode
 
 pytestmark = pytest.mark.unit

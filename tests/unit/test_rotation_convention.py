@@ -247,6 +247,7 @@ def test_rotate_actions_turns_dx_dy_counter_clockwise():
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_physically_rotated_world_matches_rotated_episode(env):
     for seed, yaw0 in _cases(env):
         _check_yaw_budget(yaw0, ACTIONS)

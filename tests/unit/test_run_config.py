@@ -41,11 +41,11 @@ def test_variants_configure_actor_augmenter_and_learner(tmp_path):
     assert augmenter_cfg(mea, tmp_path).augment.observation == "voxel"
     assert actor_cfg(rsac, tmp_path).depth_image and not actor_cfg(mea, tmp_path).depth_image
     assert (
-        learner_cfg(rsac, tmp_path).observation == "depth"
-        and learner_cfg(mea, tmp_path).observation == "voxel"
+        learner_cfg(rsac, tmp_path).algorithm.observation == "depth"
+        and learner_cfg(mea, tmp_path).algorithm.observation == "voxel"
     )
-    assert learner_cfg(RunConfig(task="block_pick"), tmp_path).net.group == "d4"
-    assert learner_cfg(RunConfig(task="block_pull"), tmp_path).net.group == "c4"
+    assert learner_cfg(RunConfig(task="block_pick"), tmp_path).algorithm.net.group == "d4"
+    assert learner_cfg(RunConfig(task="block_pull"), tmp_path).algorithm.net.group == "c4"
     # rotated copies of each success: the CPU recipe's 64 in every variant, the paper's count otherwise
     for run, count in [(mea, 64), (rsac, 64), (RunConfig(learner_preset="paper"), 0),
                        (RunConfig(success_rotations=8), 8), (RunConfig(learner_preset="cpu-small-state"), 64)]:  # fmt: skip
@@ -57,10 +57,10 @@ def test_variants_configure_actor_augmenter_and_learner(tmp_path):
     for name in CPU_LEARNER_PRESETS:
         assert RunConfig(learner_preset=name).resolved_mea_on() == "successes"
     assert RunConfig(learner_preset="paper").resolved_mea_on() == "demos"
-    assert LEARNER_PRESETS["cpu-small-state"].net.critic_input == "state"
-    assert (
-        LEARNER_PRESETS["cpu-small"].net.critic_input == LEARNER_PRESETS["paper"].net.critic_input == "image"
-    )
+    critic_input = {
+        k: LEARNER_PRESETS[k].algorithm.net.critic_input for k in ("cpu-small-state", "cpu-small", "paper")
+    }
+    assert critic_input == {"cpu-small-state": "state", "cpu-small": "image", "paper": "image"}
     with pytest.raises(ValueError, match="mea-on"):
         RunConfig(variant="equiobs", mea_on="all")
     with pytest.raises(ValueError, match="variant"):
@@ -80,12 +80,13 @@ def test_the_plan_derives_every_service_config_from_the_run_and_its_learner_pres
     learner = specs[0].config
     preset = LEARNER_PRESETS["cpu-small"]
     # the preset's own fields survive; the run sets only group, observation, budget, seed, threads, dir
-    assert (learner.batch_size, learner.demo_fraction, learner.sac) == (
+    assert (learner.batch_size, learner.demo_fraction, learner.algorithm.sac) == (
         preset.batch_size,
         preset.demo_fraction,
-        preset.sac,
+        preset.algorithm.sac,
     )
-    assert (learner.net.group, learner.max_env_steps, learner.seed, learner.threads) == ("d4", 3000, 2, 1)
+    assert (learner.algorithm.net.group, learner.max_env_steps) == ("d4", 3000)
+    assert (learner.seed, learner.threads) == (2, 1)
     assert learner.run_dir == tmp_path / "learner" and not learner.resume
     a0, a1 = specs[2].config, specs[3].config
     assert (a0.demos, a1.demos) == (run.resolved_demos(), 0) and (a0.index, a1.index) == (0, 1)
@@ -251,10 +252,14 @@ def test_surgical_runs_take_the_gasv2_variants_and_learner(tmp_path):
     paper = config_for(
         dataclasses.replace(run, learner_preset="paper", variant="gasv2"), tmp_path, "learner", 0
     )
-    assert paper.algorithm == "gasv2" and paper.batch_size == 100 and paper.dreamer.deter == 1024
+    assert (
+        paper.algorithm.name == "gasv2" and paper.batch_size == 100 and paper.algorithm.dreamer.deter == 1024
+    )
     plain = config_for(dataclasses.replace(run, variant="gasv2"), tmp_path, "augmenter", 0)
     assert plain.augment.mea_on == "none"
-    with pytest.raises(ValueError, match="has no gasv2 learner"):
+    with pytest.raises(
+        ValueError, match="learner-preset must be one of paper, cpu-small, smoke with --variant mea-gasv2"
+    ):
         dataclasses.replace(run, learner_preset="cpu-small-state")
 
 

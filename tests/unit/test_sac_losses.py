@@ -9,11 +9,11 @@ import pytest
 import torch
 from torch import nn
 
-from services.learner.core.sac import (
+from services.learner.core.sac.agent import RecurrentSAC
+from services.learner.core.sac.config import SacSettings
+from services.learner.core.sac.losses import (
     Batch,
     PolicyOutputs,
-    RecurrentSAC,
-    SacSettings,
     actor_loss,
     alpha_loss,
     bounded_targets,

@@ -15,10 +15,10 @@ from services.learner.core.groups import get_group, transform_actions, transform
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.privileged import STATE_DIM
 from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac import (
+from services.learner.core.sac.agent import RecurrentSAC
+from services.learner.core.sac.config import SacSettings
+from services.learner.core.sac.losses import (
     Batch,
-    RecurrentSAC,
-    SacSettings,
     actor_loss,
     bc_loss,
     critic_loss,
@@ -104,6 +104,7 @@ def test_bc_loss_is_the_squared_error_on_demo_transitions_only():
     assert float(bc_loss(policy.mean, no_demo)) == 0.0
 
 
+@pytest.mark.slow
 def test_bc_weight_pulls_the_policy_mean_to_the_demo_actions():
     batch = to_batch(replay_with([5], demos=1).sample(1, np.random.default_rng(5)))
 

@@ -1,5 +1,6 @@
 """TensorBoard scalars: means over a window written at env steps, CleanRL-style tags, read back with
-tensorboard's own event reader; a second writer in the same directory (a resume) appends."""
+tensorboard's own event reader; each writer in a directory of its own (its instance), where a second
+writer (a resume) appends."""
 
 from __future__ import annotations
 
@@ -35,7 +36,8 @@ def test_means_every_n_and_a_resume_appends(tmp_path):
     again = ScalarLog(tmp_path, every=1, suffix="learner-0")
     again.add({"critic_loss": 7.0}, step=40)
     again.close()
-    got = read(tmp_path)
+    assert [p.name for p in tmp_path.iterdir()] == ["learner-0"]  # the instance's own directory
+    got = read(tmp_path / "learner-0")
     assert got["losses/critic_loss"] == [(20, 2.0), (40, 7.0)]
     assert got["losses/alpha"] == [(20, 0.5)]  # the NaN was skipped, not averaged in
 

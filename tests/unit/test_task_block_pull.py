@@ -157,6 +157,7 @@ def _run_expert(env, seed: int, style: str) -> dict:
 
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize("style", ["direct", "probe"])
+@pytest.mark.slow
 def test_expert_pulls_the_movable_block_into_the_fixed_one(env, style):
     runs = [_run_expert(env, seed, style) for seed in EXPERT_SEEDS]
     assert all(r["success"] for r in runs), runs

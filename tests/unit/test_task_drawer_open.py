@@ -134,6 +134,7 @@ def test_success_predicate(env):
 
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("style", ["direct", "probe"])
+@pytest.mark.slow
 def test_expert_succeeds(episodes, style):
     runs = [episodes[(style, s)] for s in EXPERT_SEEDS]
     assert all(r["success"] for r in runs), [(s, r) for s, r in zip(EXPERT_SEEDS, runs, strict=True)]
@@ -142,6 +143,7 @@ def test_expert_succeeds(episodes, style):
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.slow
 def test_probe_touches_the_locked_drawer_and_direct_does_not(episodes):
     for s in EXPERT_SEEDS:
         assert episodes[("probe", s)]["touched_locked"], s
@@ -150,6 +152,7 @@ def test_probe_touches_the_locked_drawer_and_direct_does_not(episodes):
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.slow
 def test_locked_drawer_never_moves(env, episodes):
     assert max(r["locked_max"] for r in episodes.values()) < 1e-3
     # grasp the locked handle and pull hard for several steps: it stays shut

@@ -237,6 +237,7 @@ def test_discrete_steps_move_by_the_discrete_scales_and_the_time_limit_truncates
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_the_oracle_grasps_on_a_seeded_sample(env):
     successes = 0
     for seed in range(100, 112):  # mea bench tasks measures 100 seeds

@@ -52,6 +52,7 @@ def test_same_seed_and_actions_give_identical_observations(env):
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_transition_prior_holds_without_contact(env):
     """Translation moves object points by -a*Delta (mm-level), rotation turns the gripper by a*Delta_theta."""
     samples = []

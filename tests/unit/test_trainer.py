@@ -136,13 +136,13 @@ class Guard:
 def test_the_guard_covers_replay_and_limiter_but_never_an_update() -> None:
     guard = Guard()
     trainer = tiny_trainer(min_steps=10, guard=guard)
-    update = trainer.sac.update
+    update = trainer.agent.update
 
     def unguarded_update(batch):
         assert not guard.held, "a gradient update ran under the guard"
         return update(batch)
 
-    trainer.sac.update = unguarded_update
+    trainer.agent.update = unguarded_update
     trainer.insert(learner_episode(0, T=10))
     trainer.gate()
     assert guard.entries == 2

@@ -98,12 +98,7 @@ def load(blob: WeightsBlob, deterministic: bool = True) -> Loaded:
         runtime.load(blob)
     except (ValueError, RuntimeError, KeyError) as exc:
         raise SwapRefusedError("load", f"weights v{blob.version} do not load: {str(exc)[:300]}") from None
-    if blob.algorithm == "gasv2":
-        d = runtime.spec.dreamer  # type: ignore[union-attr]
-        shape = (d.channels, d.image_size, d.image_size)
-    else:
-        n = runtime.spec.net  # type: ignore[union-attr]
-        shape = (n.in_channels, n.image_size, n.image_size)
+    shape = runtime.spec.image_shape  # type: ignore[union-attr]  # loaded just above
     return Loaded(blob.version, blob.run_id, blob.algorithm, observation, shape, runtime)
 
 

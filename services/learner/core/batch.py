@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from services.learner.core.replay_batch import SequenceBatch
-from services.learner.core.sac import Batch
+from services.learner.core.sac.losses import Batch
 from services.learner.core.tensors import images_from_codes
 
 

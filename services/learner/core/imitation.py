@@ -18,7 +18,7 @@ from torch import nn
 
 from services.learner.core.batch import to_batch
 from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac import Batch, bc_loss
+from services.learner.core.sac.losses import Batch, bc_loss
 
 
 @dataclass(frozen=True)

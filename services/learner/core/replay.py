@@ -13,14 +13,18 @@ generator state. Not thread-safe: the caller serialises inserts and samples.
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from proto.actions import ACTION_DIM
+from services.learner.core.privileged import episode_critic_state
 from services.learner.core.replay_batch import SequenceBatch
 from services.learner.core.replay_storage import ReplayStorage
 from services.observation import image_format
+
+if TYPE_CHECKING:
+    from proto.episode import Episode
 
 STATE_FORMAT = 1
 """Version of the ``state_dict`` layout."""
@@ -42,6 +46,11 @@ def public_reference_bytes(capacity_transitions: int, image_size: int = 84, chan
 class SequenceReplay(ReplayStorage):
     """Whole-episode replay with a fixed memory budget (``ReplayStorage``, same arguments) that samples
     batches and saves and restores its contents."""
+
+    def insert_episode(self, ep: Episode) -> int:
+        """``insert`` with the episode's privileged state rows where the buffer keeps them (a state
+        critic's: ``privileged.episode_critic_state``); ValueError (unchanged) when refused."""
+        return self.insert(ep, episode_critic_state(ep) if self.state_dim else None)
 
     # ---------------------------------------------------------------- sample
 

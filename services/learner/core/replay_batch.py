@@ -49,6 +49,16 @@ class SequenceBatch:
     """float32 (B, L+1, state_dim): privileged state per observation (state_dim may be 0)."""
 
     @property
+    def demo_share(self) -> float:
+        """Share of the episodes drawn from the demonstration set."""
+        return float(self.from_demo_set.mean())
+
+    @property
+    def reward_transitions(self) -> float:
+        """Transitions with reward > 0."""
+        return float((self.rewards > 0).sum())
+
+    @property
     def batch_size(self) -> int:
         return int(self.actions.shape[0])
 

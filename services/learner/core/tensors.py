@@ -3,9 +3,13 @@ every algorithm's consumers and learners alike."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TypeVar
+
 import numpy as np
 import torch
 
+from proto.weights import WeightsBlob
 from services.observation.image_format import INPUT_SCALE
 
 
@@ -30,3 +34,20 @@ def fitting_state(
             f"weights v{version} do not fit the network: {len(wrong)} tensors differ (e.g. {wrong[:3]})"
         )
     return state
+
+
+def actor_tensors(actor: torch.nn.Module) -> dict[str, np.ndarray]:
+    """A policy's parameters and buffers as numpy arrays on the CPU (what a WeightsBlob carries)."""
+    return {k: v.detach().cpu().numpy().copy() for k, v in actor.state_dict().items()}
+
+
+M = TypeVar("M", bound=torch.nn.Module)
+
+
+def rebuilt(module: M | None, same_spec: bool, build: Callable[[], M], blob: WeightsBlob) -> M:
+    """A consumer's policy network for ``blob``: ``module`` where its spec is the blob's (``same_spec``),
+    else a new ``build()``, with the blob's tensors loaded (checked first: ``fitting_state``), in
+    eval mode. ValueError, ``module`` untouched, if they do not fit."""
+    net = module if same_spec and module is not None else build()
+    net.load_state_dict(fitting_state(net, blob.tensors, blob.version), strict=True)
+    return net.eval()

@@ -1,4 +1,5 @@
-"""The learner's training step and replay-gate arithmetic: replay, rate limiter and SAC, nothing else.
+"""The learner's training step and replay-gate arithmetic, for any algorithm (``algorithm``): its
+replay, the rate limiter and its learner, nothing else.
 
 No transport, metrics or threads: the service (``services.learner.main``) calls these methods from
 its ingest thread (``insert``, ``gate``) and its training loop (``step``), and publishes or records
@@ -8,18 +9,14 @@ update never holds up ingest.
 
 Rate limiting (``rate_limiter.SampleToInsertRatio``)
     Inserts are counted in raw env steps (augmented copies are not new experience) and samples in
-    updates. The learner trains only while updates <= samples_per_insert x env steps + slack, so a
-    slow actor fleet never makes it over-train the same data, and it waits until ``min_steps`` env
-    steps are in. The other side is the replay gate: the learner announces how many env steps it
-    will take in total before producers should wait (``allowed_steps``), and actors hold back new
-    episodes while that allowance is used up, so fast actors do not run ahead of the learner's update
-    budget. Everything inserted is still accepted: the gate asks, it never drops.
+    updates. The learner trains only while updates <= samples_per_insert x env steps + slack, and
+    waits until ``min_steps`` env steps are in. The replay gate announces how many env steps it will
+    take in total before producers should wait (``allowed_steps``); it asks, it never drops.
 
 Devices
-    The agent may train on a GPU; the replay stays in host memory and each batch is copied to the
-    agent's device (``batch.to_batch``). Reading an update's statistics there waits for the device
-    (a host synchronisation), so with ``metrics_every`` N > 1 they stay on it (``MetricsWindow``) and
-    are read as means every N updates.
+    The learner may train on a GPU; the replay stays in host memory and each batch is copied to the
+    device. Reading an update's statistics there waits for the device, so with ``metrics_every``
+    N > 1 they stay on it (``MetricsWindow``) and are read as means every N updates.
 """
 
 from __future__ import annotations
@@ -27,18 +24,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import torch
 
 from proto.control import ReplayGate
-from services.learner.core.batch import to_batch
-from services.learner.core.policy import actor_tensors
-from services.learner.core.privileged import episode_critic_state
+from services.learner.core.algorithm import Algorithm, AlgorithmConfig, Replay
 from services.learner.core.rate_limiter import RateLimiter
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac import RecurrentSAC
 
 if TYPE_CHECKING:
     from proto.episode import Episode
@@ -90,27 +83,25 @@ class GateReading:
         )
 
 
-@dataclass(frozen=True)
-class TrainerSettings:
-    """How batches are drawn and when the trainer publishes or stops (``LearnerConfig``'s fields)."""
+class Schedule(Protocol):
+    """What the trainer reads of the learner's settings, where they are (``LearnerConfig`` is one:
+    nothing is copied, and each setting is checked once, there). Read only."""
 
     batch_size: int
-    """Whole episodes per update."""
-    trim_batches: bool
-    """Pad each batch to its longest episode instead of seq_len."""
+    """Episodes (SAC) or windows (GASv2) per update."""
+    demo_fraction: float
+    """Share of every batch drawn from the demonstration set (0: uniform)."""
+    successes_as_demos: bool
+    """Episodes that succeeded join the demonstration set."""
     publish_every: int
     """New weights are due every this many updates."""
-    demo_fraction: float = 0.0
-    """Share of every batch drawn from the demonstration set (0: uniform)."""
-    successes_as_demos: bool = False
-    """Episodes that succeeded (``Episode.succeeded``) join the demonstration set."""
-    max_env_steps: int = 0
+    max_env_steps: int
     """Env-step budget of the run: the gate never allows more (0: none)."""
-    max_updates: int = 0
+    max_updates: int
     """The trainer is done after this many updates (0: never)."""
-    metrics_every: int = 1
-    """Read the update statistics from the agent's device every this many updates, as means over
-    them (``MetricsWindow``); 1 reads each update's (the CPU default: no device to wait for)."""
+    metrics_every: int
+    """Read the update statistics from the device every this many updates, as means over them
+    (``MetricsWindow``); 1 reads each update's (the CPU: no device to wait for)."""
 
 
 class MetricsWindow:
@@ -136,30 +127,31 @@ class MetricsWindow:
 
 
 class Trainer:
-    """One learner's replay, limiter and SAC, driven one insert, gate reading or update at a time."""
+    """One learner's replay, limiter and algorithm, driven one insert, gate reading or update at a time.
+
+    ``config`` says how batches are drawn and made (``AlgorithmConfig.sample``, ``to_batch``);
+    ``agent`` is what it built to learn (``Algorithm``: ``update``, ``state_dict`` for the checkpoint,
+    ``updates`` its count)."""
 
     def __init__(
         self,
-        agent: RecurrentSAC,
-        replay: SequenceReplay,
+        config: AlgorithmConfig,
+        agent: Algorithm,
+        replay: Replay,
         limiter: RateLimiter,
         rng: np.random.Generator,
-        settings: TrainerSettings,
+        schedule: Schedule,
         guard: AbstractContextManager[object] | None = None,
     ) -> None:
-        # what learns: its ``update`` trains, its ``state_dict`` is the checkpoint's learner part and
-        # ``updates`` its count (subclasses hold another algorithm's agent here)
-        self.agent, self.replay, self.limiter, self.rng, self.settings = agent, replay, limiter, rng, settings
+        self.config, self.agent, self.replay, self.limiter, self.rng = config, agent, replay, limiter, rng
+        self.schedule = schedule
+        self.metrics_every = schedule.metrics_every
         self.guard = guard if guard is not None else nullcontext()
         self.window = MetricsWindow()
 
-    @property
-    def sac(self) -> RecurrentSAC:
-        return self.agent
-
     def policy_tensors(self) -> dict[str, np.ndarray]:
-        """The published part (a WeightsBlob's tensors): the actor's parameters and buffers."""
-        return actor_tensors(self.agent.actor)
+        """The published part (a WeightsBlob's tensors), on the CPU."""
+        return self.agent.policy_tensors()
 
     @property
     def env_steps(self) -> int:
@@ -175,9 +167,8 @@ class Trainer:
 
         Raises ``ValueError`` (the replay and the limiter unchanged) if the replay refuses it.
         """
-        state = episode_critic_state(ep) if self.replay.state_dim else None
         with self.guard:
-            self.replay.insert(ep, state)
+            self.replay.insert_episode(ep)
             if ep.augmentation is None:
                 self.limiter.inserted(ep.num_steps)
 
@@ -186,7 +177,7 @@ class Trainer:
             inserted = self.limiter.inserts
             return GateReading(
                 inserted=inserted,
-                allowed=allowed_steps(inserted, self.limiter.inserts_allowed(), self.settings.max_env_steps),
+                allowed=allowed_steps(inserted, self.limiter.inserts_allowed(), self.schedule.max_env_steps),
                 samples_allowed=self.limiter.samples_allowed(),
                 can_sample=self.limiter.can_sample(),
                 replay_transitions=len(self.replay),
@@ -195,43 +186,37 @@ class Trainer:
             )
 
     def step(self) -> dict[str, float] | None:
-        """One SAC update on a freshly drawn batch if the limiter allows it now (None otherwise): the
+        """One update on a freshly drawn batch if the limiter allows it now (None otherwise): the
         update's losses and statistics, plus the batch's demonstration share and rewarded transitions.
 
         With ``metrics_every`` N > 1 the losses and statistics come every N-th update only (by the
         update count), as means over the updates since the last read (``MetricsWindow``); the other
         updates give the batch's two numbers alone."""
-        s = self.settings
+        s = self.schedule
         with self.guard:
             ready = self.replay.num_episodes > 0 and self.limiter.can_sample()
             sample = (
-                self.replay.sample(
-                    s.batch_size,
-                    self.rng,
-                    demo_fraction=s.demo_fraction,
-                    successes_as_demos=s.successes_as_demos,
-                    trim=s.trim_batches,
-                )
+                self.config.sample(self.replay, s.batch_size, self.rng, s.demo_fraction, s.successes_as_demos)
                 if ready
                 else None
             )
         if sample is None:
             return None
-        batch = to_batch(sample, self.agent.device)
-        if s.metrics_every == 1:
+        batch = self.config.to_batch(sample, self.agent.device)
+        if self.metrics_every == 1:
             info = self.agent.update(batch)
         else:
             self.window.add(self.agent.update_tensors(batch))
-            info = self.window.read() if self.agent.updates % s.metrics_every == 0 else {}
-        info["batch_demo_share"] = float(sample.from_demo_set.mean())
-        info["batch_reward_transitions"] = float((sample.rewards > 0).sum())
+            info = self.window.read() if self.agent.updates % self.metrics_every == 0 else {}
+        info["batch_demo_share"] = sample.demo_share
+        info["batch_reward_transitions"] = sample.reward_transitions
         with self.guard:
             self.limiter.sampled()
         return info
 
     def publish_due(self) -> bool:
         """Whether the update just done completes a ``publish_every`` period."""
-        return self.agent.updates % self.settings.publish_every == 0
+        return self.agent.updates % self.schedule.publish_every == 0
 
     def done(self) -> bool:
-        return self.settings.max_updates > 0 and self.agent.updates >= self.settings.max_updates
+        return self.schedule.max_updates > 0 and self.agent.updates >= self.schedule.max_updates

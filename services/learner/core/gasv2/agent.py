@@ -16,6 +16,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterable
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -31,6 +32,7 @@ from services.learner.core.gasv2.chunks import ChunkBatch
 from services.learner.core.gasv2.config import DreamerConfig
 from services.learner.core.gasv2.rssm import RSSM, RSSMState, features
 from services.learner.core.gasv2.world_model import Encoder, WorldModel
+from services.learner.core.tensors import actor_tensors
 
 BEHAVIOUR_METRICS = ("actor_loss", "critic_loss", "actor_entropy", "advantage", "imag_return", "imag_reward",
                      "imag_discount", "imag_value", "actor_grad_norm", "critic_grad_norm")  # fmt: skip
@@ -105,8 +107,18 @@ class GasV2Agent:
         self.action_features = torch.as_tensor(DISCRETE_FEATURES, device=self.device)
         self.updates = 0
 
+    def policy_tensors(self) -> dict[str, np.ndarray]:
+        """What actors run, on the CPU: the latent policy (encoder, RSSM, actor), not the decoder,
+        heads or critic."""
+        return actor_tensors(self.policy)
+
     def update(self, batch: ChunkBatch) -> dict[str, float]:
-        """One world-model step, then one actor and one critic step in imagination; metrics as floats."""
+        """``update_tensors``, its statistics read as floats."""
+        return {k: float(v) for k, v in self.update_tensors(batch).items()}
+
+    def update_tensors(self, batch: ChunkBatch) -> dict[str, Tensor | float]:
+        """One world-model step, then one actor and one critic step in imagination; its statistics as
+        0-d tensors on the device (counts as floats), never read here."""
         cfg, batch = self.cfg, batch.to(self.device)
         model_loss, posts, metrics = self.world_model.loss(batch, self.generator)
         metrics["model_grad_norm"] = _step(self.model_opt, model_loss, self._params["model"], cfg.grad_clip)
@@ -123,14 +135,11 @@ class GasV2Agent:
             )
             metrics.update(b_metrics)
         else:  # nothing to imagine from: report zeros, leave actor and critic as they are
-            metrics.update({k: torch.zeros(()) for k in BEHAVIOUR_METRICS})
+            metrics.update({k: torch.zeros((), device=self.device) for k in BEHAVIOUR_METRICS})
         self.updates += 1
         if self.updates % cfg.slow_target_every == 0:
             update_slow_target(self.slow_critic, self.critic, cfg.slow_target_fraction)
-        out = {k: float(v) for k, v in metrics.items()}
-        out["imag_starts"] = float(n)
-        out["updates"] = float(self.updates)
-        return out
+        return {**metrics, "imag_starts": float(n), "updates": float(self.updates)}
 
     # checkpoints -------------------------------------------------------------------------------
     def state_dict(self) -> dict:

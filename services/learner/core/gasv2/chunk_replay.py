@@ -85,6 +85,16 @@ class ChunkSample:
     def shape(self) -> tuple[int, int]:
         return int(self.rewards.shape[0]), int(self.rewards.shape[1])
 
+    @property
+    def demo_share(self) -> float:
+        """Share of the windows drawn from the demonstration set."""
+        return float(np.mean(self.demo))
+
+    @property
+    def reward_transitions(self) -> float:
+        """Steps with reward > 0."""
+        return float((self.rewards > 0).sum())
+
 
 _BATCH_FIELDS = tuple(f.name for f in dataclasses.fields(ChunkBatch))
 

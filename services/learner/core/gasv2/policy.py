@@ -26,7 +26,7 @@ from proto.weights import WeightsBlob
 from services.learner.core.gasv2.action_features import FEATURE_DIM, features
 from services.learner.core.gasv2.agent import LatentPolicy, build_policy
 from services.learner.core.gasv2.config import DreamerConfig
-from services.learner.core.tensors import fitting_state, images_from_codes
+from services.learner.core.tensors import images_from_codes, rebuilt
 
 OBSERVATION = "dsa"
 """GASv2 observes the env's DSA image (Surgical Grasp Any: 3 x 64 x 64 uint8)."""
@@ -38,6 +38,10 @@ class GasV2Spec:
 
     dreamer: DreamerConfig
     observation: str = OBSERVATION
+
+    @property
+    def image_shape(self) -> tuple[int, int, int]:
+        return (self.dreamer.channels, self.dreamer.image_size, self.dreamer.image_size)
 
     def to_json(self) -> str:
         return json.dumps(
@@ -70,10 +74,8 @@ class LatentRuntime:
 
     def load(self, blob: WeightsBlob) -> None:
         spec = GasV2Spec.from_json(blob.config_json)
-        policy = self.policy if spec == self.spec and self.policy is not None else build_policy(spec.dreamer)
-        policy.load_state_dict(fitting_state(policy, blob.tensors, blob.version), strict=True)
-        policy.eval()
-        self.policy, self.spec = policy, spec
+        self.policy = rebuilt(self.policy, spec == self.spec, lambda: build_policy(spec.dreamer), blob)
+        self.spec = spec
 
     def fresh(self, generator: torch.Generator) -> LatentRuntime:
         """The same policy (shared, read-only) with its own state and generator."""

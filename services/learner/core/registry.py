@@ -1,0 +1,27 @@
+"""The algorithms, by the name their weights carry (``WeightsBlob.algorithm``, ``--algorithm``): each
+name's config type, policy spec and policy runtime (``algorithm.Registration``). The one place that
+knows them all: everything else asks here, or asks the config it was given."""
+
+from __future__ import annotations
+
+from services.learner.core.algorithm import Registration
+from services.learner.core.gasv2.algorithm import GasV2Config
+from services.learner.core.gasv2.policy import GasV2Spec, LatentRuntime
+from services.learner.core.sac.algorithm import SacConfig
+from services.learner.core.sac.policy import ActorRuntime, PolicySpec
+
+SAC = Registration(SacConfig, PolicySpec.from_json, ActorRuntime)
+GASV2 = Registration(GasV2Config, GasV2Spec.from_json, LatentRuntime)
+
+ALGORITHMS: dict[str, Registration] = {"equi_rsac": SAC, "rsac": SAC, "gasv2": GASV2}
+
+
+def lookup(name: str) -> Registration:
+    """The registration of ``name``; ValueError naming the algorithms otherwise."""
+    try:
+        return ALGORITHMS[name]
+    except KeyError:
+        raise ValueError(f"unknown algorithm {name!r}; the learners are {', '.join(ALGORITHMS)}") from None
+
+
+__all__ = ["ALGORITHMS", "lookup"]

@@ -1,0 +1,96 @@
+"""Recurrent SAC as the learner runs it (``SacConfig``, an ``algorithm.AlgorithmConfig``): its
+networks, hyperparameters and observation, and how it builds its learner (``agent.RecurrentSAC``), its
+replay of whole episodes (``replay.SequenceReplay``) and its batches (``batch.to_batch``)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Annotated
+
+import numpy as np
+import torch
+import tyro
+
+from services.learner.core.batch import to_batch
+from services.learner.core.networks import PRESETS as NET_PRESETS
+from services.learner.core.networks import NetConfig, build_actor, build_critic
+from services.learner.core.privileged import STATE_DIM
+from services.learner.core.replay import SequenceReplay
+from services.learner.core.replay_batch import SequenceBatch
+from services.learner.core.sac.agent import RecurrentSAC
+from services.learner.core.sac.config import SacSettings
+from services.learner.core.sac.losses import Batch
+from services.learner.core.sac.policy import PolicySpec
+
+GROUPS = {"equi_rsac": ("c4", "d4"), "rsac": ("none",)}
+"""The two SAC learners by name and their networks' symmetry groups: Equi-RSAC's C4 or D4 layers,
+the plain twin's ordinary ones (``rsac`` sets ``net.group`` none itself)."""
+OBSERVATIONS = ("voxel", "depth")
+
+
+@dataclass(frozen=True)
+class SacConfig:
+    """Recurrent SAC: its networks, hyperparameters and what its policy observes."""
+
+    name: Annotated[str, tyro.conf.arg(name="algorithm")] = "equi_rsac"
+    """equi_rsac (C4/D4-equivariant, `--net.group c4|d4`), rsac (the non-equivariant twin, same widths)
+    or gasv2 (DreamerV2 world model + imagination actor; Surgical Grasp Any; `--preset gasv2...`)."""
+    net: NetConfig = field(default_factory=lambda: NET_PRESETS["paper"])
+    """Network widths and symmetry group."""
+    sac: SacSettings = SacSettings()
+    """SAC hyperparameters."""
+    observation: str = "voxel"
+    """What the policy sees: voxel (orthographic projection; EquiObs/MEA) or depth (rendered;
+    Equi-RSAC); dsa is the gasv2 presets'."""
+    trim_batches: bool = True
+    """Pad each batch to its longest episode instead of seq_len (same losses, less work)."""
+
+    def __post_init__(self) -> None:
+        if self.name not in GROUPS:
+            raise ValueError(f"--algorithm {self.name!r} starts from a gasv2 preset (--preset gasv2, gasv2-cpu-small "
+                             "or gasv2-smoke): it observes dsa, the surgical DSA image, in windows of its own; "
+                             f"these presets train {' or '.join(GROUPS)}")  # fmt: skip
+        if GROUPS[self.name] == ("none",) and self.net.group != "none":  # the twin: same widths, plain layers
+            object.__setattr__(self, "net", dataclasses.replace(self.net, group="none"))
+        if self.net.group not in GROUPS[self.name]:
+            raise ValueError(f"{self.name} needs --net.group {' or '.join(GROUPS[self.name])} (the plain twin is "
+                             "--algorithm rsac)")  # fmt: skip
+        if self.observation not in OBSERVATIONS:
+            raise ValueError(f"observation must be one of {OBSERVATIONS} (dsa, the surgical DSA image, is the "
+                             f"gasv2 learner's only), not {self.observation!r}")  # fmt: skip
+        if self.net.critic_input == "state" and self.sac.share_encoder:
+            raise ValueError("sac.share_encoder needs the image critic (net.critic_input image)")
+
+    @property
+    def group(self) -> str:
+        return self.net.group
+
+    def for_run(self, observation: str, group: str) -> SacConfig:
+        return dataclasses.replace(
+            self, net=dataclasses.replace(self.net, group=group), observation=observation
+        )
+
+    def build(self, seed: int, device: torch.device) -> RecurrentSAC:
+        """Actor and critic from torch's current generator (the trainer seeds it; ``seed`` unused)."""
+        return RecurrentSAC(build_actor(self.net), build_critic(self.net), self.sac, device)
+
+    def replay(self, capacity: int, seq_len: int, seed: int) -> SequenceReplay:
+        """Whole episodes of policy images, with the privileged state per step for a state critic."""
+        state_dim = STATE_DIM if self.net.critic_input == "state" else 0
+        return SequenceReplay(capacity, image_size=self.net.image_size, seq_len=seq_len,
+                              channels=self.net.in_channels, seed=seed, state_dim=state_dim)  # fmt: skip
+
+    def sample(
+        self, replay: SequenceReplay, batch_size: int, rng: np.random.Generator, demo_fraction: float,
+        successes_as_demos: bool,
+    ) -> SequenceBatch:  # fmt: skip
+        """``batch_size`` whole episodes (``trim_batches``: padded to the longest of them)."""
+        return replay.sample(batch_size, rng, demo_fraction=demo_fraction, successes_as_demos=successes_as_demos,
+                             trim=self.trim_batches)  # fmt: skip
+
+    def to_batch(self, sample: SequenceBatch, device: torch.device) -> Batch:
+        return to_batch(sample, device)
+
+    def spec(self) -> PolicySpec:
+        return PolicySpec(self.net, self.observation)

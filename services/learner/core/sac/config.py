@@ -1,0 +1,61 @@
+"""Recurrent SAC's hyperparameters (``SacSettings``): the paper's values as defaults, and the options
+the CPU recipes add (BC term, Q filter, n-step and bounded targets, a shared encoder)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SacSettings:
+    gamma: float = 0.9
+    """Discount (Equi-RSAC: 0.9)."""
+    tau: float = 0.005
+    """Soft-update rate of the target critic."""
+    lr: float = 3e-4
+    """Adam learning rate of actor and critic."""
+    alpha_lr: float = 1e-3
+    """Adam learning rate of log alpha."""
+    init_alpha: float = 0.1
+    """Initial entropy temperature."""
+    target_entropy: float = -5.0
+    """Target entropy (-action_dim)."""
+    autotune_alpha: bool = True
+    """Tune alpha to reach the target entropy; else keep init_alpha."""
+    bc_weight: float = 0.0
+    """Weight of a behaviour-cloning term in the actor loss: squared error between the policy's mean
+    action and the recorded action on demonstration transitions (0: off, the paper)."""
+    n_step: int = 1
+    """Critic targets from n-step returns (1: the one-step target of Equi-RSAC); see ``n_step_targets``."""
+    return_bound: bool = False
+    """Critic targets no lower than the episode's observed discounted return-to-go (self-imitation /
+    optimality-tightening lower bound; valid for non-negative rewards): demonstrations and successes
+    carry their value back at once, instead of one bootstrap hop per target-network lag."""
+    share_encoder: bool = False
+    """The actor reads the critic's image encoder on detached features (SAC-AE / DrQ): one encoder
+    pass with gradients per update instead of two; the actor's loss never moves the encoder."""
+    bc_filter: bool = False
+    """Clone a demonstration action only where the target critic rates it above the policy's own
+    mean action (Q filter, Nair et al. 2018): where the critic knows better, RL overrules the clone."""
+    bc_decay_updates: int = 0
+    """Decay bc_weight linearly to 0 over this many updates (0: constant)."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {self.gamma}")
+        if not 0.0 < self.tau <= 1.0:
+            raise ValueError(f"tau must be in (0, 1], got {self.tau}")
+        if self.lr <= 0 or self.alpha_lr <= 0 or self.init_alpha <= 0:
+            raise ValueError("lr, alpha_lr and init_alpha must be positive")
+        if self.bc_weight < 0:
+            raise ValueError(f"bc_weight must be >= 0, got {self.bc_weight}")
+        if self.n_step < 1:
+            raise ValueError(f"n_step must be >= 1, got {self.n_step}")
+        if self.bc_decay_updates < 0:
+            raise ValueError(f"bc_decay_updates must be >= 0, got {self.bc_decay_updates}")
+
+    def bc_weight_at(self, updates: int) -> float:
+        """The BC weight after ``updates`` updates (``bc_decay_updates``' linear decay)."""
+        if self.bc_decay_updates == 0:
+            return self.bc_weight
+        return self.bc_weight * max(0.0, 1.0 - updates / self.bc_decay_updates)

@@ -1,0 +1,228 @@
+"""Recurrent SAC's losses (Equi-RSAC) over whole padded episodes, as pure functions.
+
+Shapes: B episodes padded to L transitions. ``images`` has L+1 observations per episode (the next
+observation of step t is observation t+1: every sequence is encoded once and the targets reuse it),
+``actions``/``rewards``/``terminated``/``mask`` have L rows; ``mask`` is 1 on real transitions and 0
+on padding. The recurrent nets read observation t with the previous action a_{t-1} (zeros at t = 0).
+
+    critic:  y_t = r_t + gamma (1 - term_t) [min_i Q'_i(h'_{t+1}, a'_{t+1}) - alpha log pi(a'_{t+1} | h_{t+1})]
+             L_Q = sum_i sum_t mask_t (Q_i(h_t, a_t) - y_t)^2 / sum_t mask_t        a' ~ pi (no gradient)
+    actor:   L_pi = sum_t mask_t [alpha log pi(a~_t | h_t) - min_i Q_i(h_t, a~_t)] / sum_t mask_t,  a~ ~ pi (reparameterised)
+    alpha:   L_alpha = -log_alpha * sum_t mask_t (log pi(a~_t) + target_entropy) / sum_t mask_t
+    BC:      L_bc = sum_t mask_t demo_b |tanh(mean_t) - a_t|^2 / sum_t mask_t demo_b    (``bc_weight`` > 0)
+
+A truncated episode bootstraps from its last observation; only ``terminated`` stops it. ``n_step``
+and ``return_bound`` change y_t (``n_step_targets``, ``bounded_targets``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+
+
+@dataclass(frozen=True)
+class Batch:
+    """A training batch as tensors (see the module docstring for shapes)."""
+
+    images: Tensor  # (B, L+1, C, H, W) float32
+    actions: Tensor  # (B, L, A) float32 in [-1, 1]
+    rewards: Tensor  # (B, L)
+    terminated: Tensor  # (B, L) float, 1 where the task ended (no bootstrap)
+    mask: Tensor  # (B, L) float, 1 on real transitions
+    demo: Tensor | None = None  # (B,) float, 1 for demonstrations (and their copies); for the BC term
+    obs_mask: Tensor | None = None  # (B, L+1) bool, real observations; padded ones skip the encoders
+    state: Tensor | None = None  # (B, L+1, S) privileged state per observation, for a state critic
+
+    @property
+    def prev_actions(self) -> Tensor:
+        """(B, L+1, A): a_{t-1} beside observation t, zeros at t = 0."""
+        a = self.actions
+        return torch.cat([torch.zeros_like(a[:, :1]), a], dim=1)
+
+
+# ------------------------------------------------------------------------------------------------
+# tanh-Gaussian policy distribution
+# ------------------------------------------------------------------------------------------------
+
+
+def tanh_gaussian_sample(
+    mean: Tensor, log_std: Tensor, noise: Tensor | None = None, generator: torch.Generator | None = None
+) -> tuple[Tensor, Tensor]:
+    """Reparameterised sample a = tanh(mean + std * eps) and its log-density (summed over the last axis).
+
+    log pi(a) = sum_k [log N(u_k; mean_k, std_k) - log(1 - tanh(u_k)^2)], with the Jacobian term in the
+    stable form 2 (log 2 - u - softplus(-2u))."""
+    log_std = log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
+    if noise is None:
+        noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+    std = log_std.exp()
+    u = mean + std * noise
+    log_normal = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+    log_jac = 2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))
+    return torch.tanh(u), (log_normal - log_jac).sum(-1)
+
+
+def deterministic_action(mean: Tensor) -> Tensor:
+    """Evaluation action: tanh of the mean."""
+    return torch.tanh(mean)
+
+
+def masked_mean(x: Tensor, mask: Tensor) -> Tensor:
+    return (x * mask).sum() / mask.sum().clamp_min(1.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# losses
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PolicyOutputs:
+    """One actor pass over the batch: sampled actions and log-probs at every observation (L+1)."""
+
+    actions: Tensor  # (B, L+1, A)
+    log_probs: Tensor  # (B, L+1)
+    mean: Tensor
+    log_std: Tensor
+
+
+def policy_outputs(
+    actor: nn.Module, batch: Batch, noise: Tensor | None = None, embedding: Tensor | None = None
+) -> PolicyOutputs:
+    mean, log_std, _ = actor(batch.images, batch.prev_actions, embedding=embedding, obs_mask=batch.obs_mask)
+    actions, log_probs = tanh_gaussian_sample(mean, log_std, noise)
+    return PolicyOutputs(actions, log_probs, mean, log_std)
+
+
+def n_step_targets(
+    rewards: Tensor, terminated: Tensor, mask: Tensor, soft_v: Tensor, gamma: float, n: int
+) -> Tensor:
+    """y_t = sum_{k<m} gamma^k r_{t+k} + gamma^m (1 - term_{t+m-1}) V(s_{t+m}), m = min(n, T - t).
+
+    All (B, L); ``soft_v[:, t]`` is V(s_{t+1}) and ``mask`` is a prefix of ones (T real steps). The
+    window stops at the episode's end: a terminal step stops the bootstrap, a truncated one
+    bootstraps from the last stored observation. Intermediate steps' entropy bonuses are left out
+    (as in n-step SAC/D4PG variants); n = 1 is the one-step target exactly."""
+    if n == 1:
+        return rewards + gamma * (1.0 - terminated) * soft_v
+    B, L = rewards.shape
+    pad = rewards.new_zeros(B, n - 1)
+    win = lambda x: torch.cat([x, pad], 1).unfold(1, n, 1)  # (B, L, n): x_{t..t+n-1}  # noqa: E731
+    m_win = win(mask)
+    discounts = gamma ** torch.arange(n, dtype=rewards.dtype, device=rewards.device)
+    returns = (win(rewards) * m_win * discounts).sum(-1)
+    steps = m_win.sum(-1).clamp_min(1.0)  # m
+    last = (torch.arange(L, device=rewards.device) + steps.long() - 1).clamp_max(L - 1)  # t + m - 1
+    boot = (1.0 - terminated.gather(1, last)) * soft_v.gather(1, last)
+    return returns + gamma**steps * boot
+
+
+def returns_to_go(rewards: Tensor, mask: Tensor, gamma: float) -> Tensor:
+    """G_t = sum_{k >= t} gamma^(k - t) mask_k r_k, (B, L): the observed discounted return of each
+    step, i.e. the n-step target with a window as long as the batch and nothing to bootstrap from."""
+    zeros = torch.zeros_like(rewards)
+    return n_step_targets(rewards * mask, zeros, mask, zeros, gamma, rewards.shape[1])
+
+
+def critic_targets(
+    critic_target: nn.Module, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float, gamma: float,
+    n_step: int = 1, feats: Tensor | None = None,
+) -> Tensor:  # fmt: skip
+    """y_t (B, L), without gradient. ``feats``: the target critic's features of the batch, if computed."""
+    with torch.no_grad():
+        feats = critic_target.features_of(batch) if feats is None else feats
+        q1, q2 = critic_target.q(feats[:, 1:], policy.actions[:, 1:].detach())
+        soft_v = torch.min(q1, q2) - alpha * policy.log_probs[:, 1:].detach()
+        return n_step_targets(batch.rewards, batch.terminated, batch.mask, soft_v, gamma, n_step)
+
+
+def bounded_targets(targets: Tensor, batch: Batch, gamma: float) -> Tensor:
+    """max(y_t, G_t): the target never below what the episode actually earned from step t."""
+    return torch.maximum(targets, returns_to_go(batch.rewards, batch.mask, gamma))
+
+
+def critic_loss(
+    critic: nn.Module, batch: Batch, targets: Tensor, feats: Tensor | None = None
+) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+    """Twin-Q regression onto ``targets``. Returns (loss, features of all L+1 steps, info).
+    ``feats``: the critic's features of this batch if already computed (with gradients)."""
+    if feats is None:
+        feats = critic.features_of(batch)
+    q1, q2 = critic.q(feats[:, :-1], batch.actions)
+    loss = masked_mean((q1 - targets).pow(2), batch.mask) + masked_mean((q2 - targets).pow(2), batch.mask)
+    info = {"q1": masked_mean(q1.detach(), batch.mask), "q2": masked_mean(q2.detach(), batch.mask)}
+    return loss, feats, info
+
+
+def actor_loss(
+    critic: nn.Module, critic_features: Tensor, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float
+) -> Tensor:
+    """alpha log pi - min Q at the policy's own actions, on real transitions."""
+    q1, q2 = critic.q(critic_features[:, :-1].detach(), policy.actions[:, :-1])
+    return masked_mean(alpha * policy.log_probs[:, :-1] - torch.min(q1, q2), batch.mask)
+
+
+def bc_loss(mean: Tensor, batch: Batch, keep: Tensor | None = None) -> Tensor:
+    """Squared error between tanh(mean) ((B, L+1, 5), the policy's pre-tanh mean) and the recorded
+    action, summed over action dims, averaged over the demonstration transitions of the batch (0 when
+    it holds none). ``keep`` (B, L): 1 where a demonstration transition is cloned (``bc_filter``);
+    the average stays over all of them, so a filtered-out transition weighs 0, not more on the rest."""
+    if batch.demo is None:
+        return mean.new_zeros(())
+    err = (torch.tanh(mean[:, :-1]) - batch.actions).pow(2).sum(-1)
+    demo = batch.mask * batch.demo[:, None]
+    kept = err if keep is None else err * keep
+    return (kept * demo).sum() / demo.sum().clamp_min(1.0)
+
+
+@dataclass(frozen=True)
+class DemoCritique:
+    """What the critic says on the batch's demonstration transitions (no gradient).
+
+    ``keep`` is the Q filter: 1 where min Q(h, a_demo) > min Q(h, tanh(mean)). ``rank_gap`` is the
+    mean of Q(h, a_demo) - Q(h, g a_demo), g a quarter turn of (dx, dy): how well the critic tells
+    the demonstrated move from the same move turned away (0: it cannot rank them)."""
+
+    keep: Tensor  # (B, L)
+    accept: Tensor  # () share of demonstration transitions kept
+    rank_gap: Tensor  # ()
+    pi_gap: Tensor  # () mean Q(h, a_demo) - Q(h, tanh(mean))
+
+
+def critique_demos(critic: nn.Module, feats: Tensor, batch: Batch, mean: Tensor) -> DemoCritique | None:
+    """``DemoCritique`` of the batch from critic features ``feats`` (B, L+1, F); None without demos."""
+    if batch.demo is None:
+        return None
+    demo = batch.mask * batch.demo[:, None]
+    with torch.no_grad():
+        f = feats[:, :-1].detach()
+        q_demo = torch.min(*critic.q(f, batch.actions))
+        q_pi = torch.min(*critic.q(f, torch.tanh(mean[:, :-1].detach())))
+        a = batch.actions
+        turned = torch.stack([a[..., 0], -a[..., 2], a[..., 1], a[..., 3], a[..., 4]], -1)
+        q_turned = torch.min(*critic.q(f, turned))
+        keep = (q_demo > q_pi).to(q_demo.dtype)
+        return DemoCritique(keep, masked_mean(keep, demo), masked_mean(q_demo - q_turned, demo),
+                            masked_mean(q_demo - q_pi, demo))  # fmt: skip
+
+
+def alpha_loss(log_alpha: Tensor, log_probs: Tensor, mask: Tensor, target_entropy: float) -> Tensor:
+    return -log_alpha * masked_mean(log_probs.detach() + target_entropy, mask)
+
+
+def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
+    """target <- (1 - tau) target + tau source, parameters and floating buffers."""
+    with torch.no_grad():
+        for t, s in zip(target.parameters(), source.parameters(), strict=True):
+            t.lerp_(s, tau)
+        for t, s in zip(target.buffers(), source.buffers(), strict=True):
+            if t.is_floating_point():
+                t.lerp_(s, tau)
+            else:
+                t.copy_(s)

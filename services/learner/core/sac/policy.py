@@ -1,0 +1,87 @@
+"""Recurrent SAC's policy as consumers run it: the spec its weights carry (``PolicySpec``) and the
+actor rebuilt from them, stepped one observation at a time (``ActorRuntime``): stochastic for
+actors, tanh of the mean for the evaluator. The LSTM state and the previous action are carried
+across an episode and cleared by ``reset``."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from proto.actions import ACTION_DIM
+from proto.weights import WeightsBlob
+from services.learner.core.algorithm import OBSERVATIONS
+from services.learner.core.networks import Actor, NetConfig, build_actor
+from services.learner.core.sac.losses import deterministic_action, tanh_gaussian_sample
+from services.learner.core.tensors import images_from_codes, rebuilt
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """What a consumer needs to rebuild and feed the policy; travels as the blob's ``config_json``."""
+
+    net: NetConfig
+    observation: str = "voxel"
+
+    @property
+    def image_shape(self) -> tuple[int, int, int]:
+        return (self.net.in_channels, self.net.image_size, self.net.image_size)
+
+    def to_json(self) -> str:
+        return json.dumps({"net": self.net.to_dict(), "observation": self.observation}, sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> PolicySpec:
+        try:
+            d = json.loads(text)
+            spec = cls(net=NetConfig.from_dict(d["net"]), observation=d.get("observation", "voxel"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"weights config_json is not a policy spec: {exc}") from exc
+        if spec.observation not in OBSERVATIONS:
+            raise ValueError(f"observation must be one of {OBSERVATIONS}, not {spec.observation!r}")
+        return spec
+
+
+class ActorRuntime:
+    """Recurrent SAC's actor, rebuilt from each blob (only when its spec changes) and stepped."""
+
+    def __init__(self, deterministic: bool, generator: torch.Generator) -> None:
+        self.deterministic, self.generator = deterministic, generator
+        self.actor: Actor | None = None
+        self.spec: PolicySpec | None = None
+        self.reset()
+
+    def load(self, blob: WeightsBlob) -> None:
+        spec = PolicySpec.from_json(blob.config_json)
+        self.actor, self.spec = (
+            rebuilt(self.actor, spec == self.spec, lambda: build_actor(spec.net), blob),
+            spec,
+        )
+
+    def fresh(self, generator: torch.Generator) -> ActorRuntime:
+        other = ActorRuntime(self.deterministic, generator)
+        other.actor, other.spec = self.actor, self.spec
+        return other
+
+    def reset(self) -> None:
+        self._state = None
+        self._prev = torch.zeros(1, ACTION_DIM)
+
+    def executed(self, action: np.ndarray) -> None:
+        self._prev = torch.from_numpy(np.asarray(action, np.float32).reshape(1, ACTION_DIM).copy())
+
+    @torch.no_grad()
+    def act(self, image_codes: np.ndarray) -> np.ndarray:
+        if self.actor is None:
+            raise RuntimeError("no weights loaded")
+        x = images_from_codes(torch.from_numpy(np.ascontiguousarray(image_codes))[None])
+        mean, log_std, self._state = self.actor.step(x, self._prev, self._state)
+        if self.deterministic:
+            a = deterministic_action(mean)
+        else:
+            a, _ = tanh_gaussian_sample(mean, log_std, generator=self.generator)
+        self._prev = a
+        return a[0].numpy().astype(np.float32)
