@@ -141,7 +141,9 @@ def test_tensorboard_videos_and_wandb_over_a_run_and_its_resume(tmp_path):
         assert len(both[tag]) > len(first[tag]) and both[tag] == sorted(both[tag]), tag
     assert "charts/weights_lag" in both  # learned episodes pulled newer weights
     runs = wandb_runs(wb)
-    assert [r["run_id"] for r in runs] == [run_id, run_id] and runs[1]["summary"]["global_step"] >= 200
+    # the same W&B run goes on past the first sitting (its last synced step may trail the budget)
+    assert [r["run_id"] for r in runs] == [run_id, run_id]
+    assert runs[1]["summary"]["global_step"] > max(first["eval/success_rate"])
     second = {t: set(s[len(first.get(t, [])) :]) for t, s in both.items()}  # the second sitting's
     points = {k: v for k, v in wandb_points(wb, run_id, 1).items() if not k.startswith("eval/video.")}
     assert points == {t: s for t, s in second.items() if s}
