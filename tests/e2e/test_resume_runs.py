@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from services.cli import main
 from services.evaluator.history import read_history
+from tests.helpers.cli import run_cli
 from tests.helpers.tree import snapshot
 
 pytestmark = pytest.mark.e2e
@@ -30,15 +30,6 @@ def mea_run(*args: str) -> subprocess.CompletedProcess:
     return out
 
 
-def in_process(argv: list[str], capsys) -> tuple[int, str, str]:
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
 @pytest.mark.timeout(600)
 def test_resume_a_finished_run_refuse_a_changed_task_then_extend_its_budget(tmp_path, capsys):
     run = tmp_path / "run"
@@ -52,10 +43,10 @@ def test_resume_a_finished_run_refuse_a_changed_task_then_extend_its_budget(tmp_
 
     # finished: said so, exit 0, nothing trained, evaluated or written
     before = snapshot(run)
-    code, out, err = in_process(["run", "--resume", str(run), *MACHINE], capsys)
+    code, out, err = run_cli(["run", "--resume", str(run), *MACHINE], capsys)
     assert code == 0 and out.startswith(f"mea run: {run} is finished: ") and err == "", (out, err)
     # a changed task is refused by name, and the run is left as it was
-    code, out, err = in_process(["run", "--resume", str(run), "--task", "drawer_open", *MACHINE], capsys)
+    code, out, err = run_cli(["run", "--resume", str(run), "--task", "drawer_open", *MACHINE], capsys)
     assert code == 2 and err.startswith("mea run: --task cannot change on --resume") and out == "", err
     assert snapshot(run) == before
 

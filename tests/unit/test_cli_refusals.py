@@ -13,22 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from services.cli import main
 from services.common import config
 from services.run_config import RunConfig
+from tests.helpers.cli import run_cli
 from tests.helpers.tree import snapshot
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
-    """(exit code, stdout, stderr) of ``mea ARGV`` run in this process."""
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 class WouldStartError(AssertionError):
