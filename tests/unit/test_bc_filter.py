@@ -100,3 +100,33 @@ def test_a_filter_that_keeps_nothing_leaves_the_actor_to_the_sac_term():
     s_off.update(batch)
     for p, q in zip(a1.parameters(), a0.parameters(), strict=True):
         torch.testing.assert_close(p, q)
+
+
+def _params(m: torch.nn.Module) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in m.parameters()]
+
+
+def test_critic_warmup_holds_actor_and_temperature_then_releases_them():
+    batch = demo_batch()
+    actor, critic, _ = nets(NET, seed=2)
+    sac = RecurrentSAC(actor, critic, SacSettings(actor_warmup_updates=2))
+    a0, c0, alpha0 = _params(actor), _params(critic), float(sac.alpha)
+    for _ in range(2):
+        info = sac.update(batch)
+    assert info["actor_grad_norm"] > 0  # measured, not applied
+    assert all(torch.equal(p, q) for p, q in zip(_params(actor), a0, strict=True))
+    assert float(sac.alpha) == alpha0
+    assert not all(torch.equal(p, q) for p, q in zip(_params(critic), c0, strict=True))
+    sac.update(batch)  # the third update moves both
+    assert not all(torch.equal(p, q) for p, q in zip(_params(actor), a0, strict=True))
+    assert float(sac.alpha) != alpha0
+    with pytest.raises(ValueError, match="actor_warmup_updates"):
+        SacSettings(actor_warmup_updates=-1)
+
+
+def test_critic_warmup_keeps_the_bc_term_on_the_actor():
+    batch = demo_batch()
+    actor, critic, _ = nets(NET, seed=2)
+    a0 = _params(actor)
+    RecurrentSAC(actor, critic, SacSettings(bc_weight=1.0, actor_warmup_updates=5)).update(batch)
+    assert not all(torch.equal(p, q) for p, q in zip(_params(actor), a0, strict=True))

@@ -141,15 +141,18 @@ class RecurrentSAC:
         trains_encoder = b_loss is not None and fwd.embedding is not None
         _step(self.critic_opt, q_loss + w * b_loss if trains_encoder else q_loss, self._critic_params)
 
-        # actor step: J_pi through the just-updated Q heads, plus the BC gradient
+        # actor step: J_pi through the just-updated Q heads, plus the BC gradient; during a critic
+        # warm-up the BC gradient alone (J_pi's gradient still measured)
+        warm = self.updates >= s.actor_warmup_updates
         pi_loss = actor_loss(self.critic, feats, batch, fwd.policy, alpha)
         pi_grads = _grads(pi_loss, self._actor_params)
-        _apply(self.actor_opt, self._actor_params, pi_grads, bc_grads)
+        if warm or bc_grads:
+            _apply(self.actor_opt, self._actor_params, pi_grads if warm else (), bc_grads)
 
         # temperature step, then the target critic
         log_probs = fwd.policy.log_probs[:, :-1]
         a_loss = alpha_loss(self.log_alpha, log_probs, batch.mask, s.target_entropy)
-        if s.autotune_alpha:
+        if s.autotune_alpha and warm:
             _step(self.alpha_opt, a_loss, [self.log_alpha])
         soft_update(self.critic_target, self.critic, s.tau)
         self.updates += 1

@@ -39,6 +39,10 @@ class SacSettings:
     mean action (Q filter, Nair et al. 2018): where the critic knows better, RL overrules the clone."""
     bc_decay_updates: int = 0
     """Decay bc_weight linearly to 0 over this many updates (0: constant)."""
+    actor_warmup_updates: int = 0
+    """Critic warm-up: for the first this many updates the SAC actor term and the temperature stay
+    still (BC, where on, still trains the actor), so the actor follows a critic that has had time to
+    rank actions instead of a fresh one (0: off, the paper)."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.gamma <= 1.0:
@@ -53,6 +57,8 @@ class SacSettings:
             raise ValueError(f"n_step must be >= 1, got {self.n_step}")
         if self.bc_decay_updates < 0:
             raise ValueError(f"bc_decay_updates must be >= 0, got {self.bc_decay_updates}")
+        if self.actor_warmup_updates < 0:
+            raise ValueError(f"actor_warmup_updates must be >= 0, got {self.actor_warmup_updates}")
 
     def bc_weight_at(self, updates: int) -> float:
         """The BC weight after ``updates`` updates (``bc_decay_updates``' linear decay)."""
