@@ -19,6 +19,7 @@ WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY proto ./proto
 COPY services ./services
+COPY mea_tools ./mea_tools
 RUN /opt/mea/bin/pip install --extra-index-url "${TORCH_INDEX_URL}" . \
  && /opt/mea/bin/python -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
 

@@ -1,26 +1,6 @@
 """JSON Schema (draft 2020-12) documents for wire messages, generated from their field specs.
 
-The messages themselves travel as msgpack (see proto/README.md); these schemas describe the same
-maps so that tools that understand JSON Schema (MCAP viewers, validators, docs) can read them.
-MCAP recordings embed :func:`json_schema_text` as each channel's schema (encoding ``jsonschema``).
-
-Mapping of the specs of :mod:`proto.specs`:
-
-* ``Str`` -> ``string`` with ``enum`` (choices), an anchored ``pattern`` and ``maxLength``;
-* ``Int`` -> ``integer``, ``Float`` -> ``number`` (finite: JSON has no NaN), with ``minimum`` /
-  ``maximum``; ``Bool`` -> ``boolean``;
-* ``Arr`` -> ``object`` standing for msgpack extension type 1, with the dtypes, the shape
-  (ints and symbolic dims such as ``"T+1"``, ``["..."]`` for any shape) and the value range under
-  the vendor keyword ``x-mea-ndarray``;
-* ``Opt`` -> ``anyOf`` of the inner schema and ``null``; ``MapOf`` -> ``object`` with
-  ``propertyNames`` and ``additionalProperties``; ``ListOf`` -> ``array`` with ``items``;
-* ``Nested`` -> the nested message's object schema inline (without ``_type``/``_v``).
-
-Top-level messages also pin ``_type`` and ``_v`` with ``const``; unknown fields are refused
-(``additionalProperties: false``) like the decoder does. What JSON Schema cannot express is left
-to the decoder: the decode-time :class:`~proto.msgpack_wire.Limits`, the agreement of symbolic dims
-between arrays and each message's cross-field ``validate`` rules. Output is deterministic.
-"""
+Design notes: docs/architecture-notes.md, proto/jsonschema.py."""
 
 from __future__ import annotations
 

@@ -14,6 +14,7 @@ DISTRIBUTION = "mea-rl"
 """The package `mea --version` reports (pyproject.toml's name)."""
 
 # command -> (module with main(argv) -> int | None, one-line help)
+# Modules are named, imported only when their command runs: the CLI stays below the tools (mea_tools).
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": (
         "services.launcher",
@@ -32,7 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "render learning curves (success vs env steps, mean ± std over seeds) to PNG",
     ),
     "audit": (
-        "services.bench.audit",
+        "mea_tools.audit.cli",
         "replay augmented episodes through physics and report their validity",
     ),
     "play": ("services.play", "render a trained policy or recorded episodes to an MP4 or GIF"),
@@ -41,7 +42,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "services.recording_check",
         "`mea recording check PATH...`: messages, channels, time range, whole or damaged",
     ),
-    "bench": ("services.bench.cli", "benchmarks that print tables (or one JSON object with --json)"),
+    "bench": ("mea_tools.bench.cli", "benchmarks that print tables (or one JSON object with --json)"),
 }
 
 

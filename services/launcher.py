@@ -21,6 +21,7 @@ import multiprocessing as mp
 import os
 import re
 import signal
+import socket
 import sys
 import threading
 import time
@@ -388,8 +389,31 @@ def prepare(cfg: RunConfig, given: Collection[str] = ()) -> Prepared:
     except ValueError as exc:
         raise ValueError(f"--init-actor: {exc}") from None
     specs, missing = child_specs(cfg, run_dir)
+    _check_metrics_ports(cfg, specs)
     done = finished(cfg, run_dir) if cfg.resume is not None else ""
     return Prepared(cfg, run_dir, specs, missing, history, done)
+
+
+def _check_metrics_ports(cfg: RunConfig, specs: list[ChildSpec]) -> None:
+    """ValueError naming the first /metrics port of the run that is taken on ``metrics_addr`` (a
+    second run on this host with the same base), before anything starts: else its services would
+    exit and restart until the supervisor gives up."""
+    ports = [("the launcher", cfg.metrics_port)] + [
+        (s.instance, s.config.service.metrics_port) for s in specs if hasattr(s.config, "service")
+    ]
+    for who, port in ports:
+        if not port:
+            continue
+        with socket.socket() as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the HTTP server binds
+            try:
+                probe.bind((cfg.metrics_addr, port))
+            except OSError as exc:
+                raise ValueError(
+                    f"--metrics-port {cfg.metrics_port}: port {port} ({who}'s /metrics) on {cfg.metrics_addr} is "
+                    f"unavailable ({exc.strerror}; another run on this host?): give this run another base, "
+                    "e.g. --metrics-port 9200, or 0 for none"
+                ) from None
 
 
 def _zenoh_reason(exc: Exception) -> str:

@@ -2,7 +2,7 @@
 multi-host deployments (docker-compose runs one). Services connect with `--service.zenoh.connect`.
 
 TLS, user/password authentication and access control come from Zenoh's own config file
-(`--zenoh-config FILE`, also `--service.zenoh.config-file`); see README "Securing the bus"."""
+(`--zenoh-config FILE`, also `--service.zenoh.config-file`); see docs/security.md."""
 
 from __future__ import annotations
 
@@ -27,13 +27,11 @@ class RouterConfig:
     """Zenoh router."""
 
     listen: tuple[str, ...] = ()
-    """Endpoints to listen on (tcp/0.0.0.0:7447 to accept other hosts); empty: the config file's
-    listen/endpoints, else tcp/127.0.0.1:7447."""
+    """Endpoints to listen on (tcp/0.0.0.0:7447 accepts other hosts)."""
     connect: tuple[str, ...] = ()
     """Other routers to mesh with (one router per host)."""
     service: ServiceConfig = ServiceConfig()
-    """Identity, metrics and logs; of its zenoh section only namespace and config_file (`--zenoh-config`)
-    are used: the router is configured above."""
+    """Identity, metrics and logs (of zenoh: namespace and config file only)."""
 
 
 PRESETS = {"default": RouterConfig()}

@@ -41,102 +41,71 @@ class RunConfig:
     task: str = "block_pull"
     """Task: block_pull, block_pick, drawer_open or surgical_grasp_any."""
     variant: str = "mea"
-    """What the paper compares. General manipulation (Equi-RSAC learner): equirsac (rendered depth
-    image, isometric x4), equiobs (voxel projection, isometric x4), mea (voxel projection, isometric x4
-    + MEA x6 on the demos, and with the cpu-small learner on online successes too: see mea_on).
-    surgical_grasp_any (GASv2 learner): gasv2 (DSA image) or mea-gasv2 (+ MEA x200, as mea_on says)."""
+    """What the paper compares: equirsac, equiobs, mea, gasv2 or mea-gasv2."""
     mea_on: str = ""
-    """mea and mea-gasv2 variants only: which episodes get MEA (demos: the paper; successes: the demos and every online
-    success; all). Empty: successes with the cpu-small learner preset, demos with the others."""
+    """mea variants: which episodes get MEA (demos, successes, all); empty: by preset."""
     env_steps: int = 40_000
-    """Env-step budget (the paper: 40K, demos included); the run stops after the evaluation at the
-    budget. 0: run until Ctrl-C."""
+    """Env-step budget, demos included (the paper: 40K); 0: until Ctrl-C."""
     learner_preset: str = "cpu-small"
-    """Learner preset: cpu-small (two CPU cores), cpu-small-state (the same with a critic on the
-    simulator's state), paper (a GPU workstation), smoke (tests)."""
+    """Learner preset: cpu-small, cpu-small-state, paper or smoke."""
     learner_device: str = "cpu"
-    """torch device of the learner: cpu, cuda or cuda:N (a GPU workstation; every learner). A machine's
-    setting: a resumed run takes it from the command line, so a GPU run continues on a CPU and back."""
+    """torch device of the learner: cpu, cuda or cuda:N."""
     seed: int = 0
     """Run seed: actors' training seeds, augmentation, networks (evaluation seeds are fixed)."""
     eval_every: int = 1000
-    """Evaluate the newest weights every this many env steps (Equi-RSAC: 250-500; raise it on CPU)."""
+    """Evaluate the newest weights every this many env steps."""
     eval_episodes: int = 20
-    """Evaluation episodes per evaluation (held-out seeds from 1e9, the same every time; deterministic
-    policy)."""
+    """Episodes per evaluation (held-out seeds, deterministic policy)."""
     final_eval_episodes: int = 50
-    """Episodes of the evaluation at the env-step budget (the same held-out seed sequence, its first
-    final_eval_episodes seeds)."""
+    """Episodes of the evaluation at the env-step budget."""
     eval_videos: int = 2
-    """Episodes filmed (MP4 in RUN_DIR/eval/videos and TensorBoard) of the 1st evaluation, every 5th
-    after it and the one at the budget. 0: none (docs/watching-training.md)."""
+    """Episodes filmed per filmed evaluation (MP4 and TensorBoard); 0: none."""
     record: bool = True
-    """Record every raw episode to RUN_DIR/episodes/raw-<n>-<k>.mcap (n: resume count; k: segment,
-    each a complete MCAP file)."""
+    """Record every raw episode to RUN_DIR/episodes/*.mcap."""
     recording_segment_bytes: int = 256 * 2**20
-    """Start the next recording segment once the open one holds this many bytes (0: no size limit)."""
+    """Bytes per recording segment (0: no size limit)."""
     recording_segment_seconds: float = 3600.0
-    """Start the next recording segment once the open one has been open this long (0: no age limit)."""
+    """Seconds per recording segment (0: no age limit)."""
     recording_max_bytes: int = 0
-    """Delete the oldest finished recording segments (every resume's) while they take more than this
-    many bytes; the newest finished one and the open one always stay. 0: keep everything."""
+    """Delete the oldest finished segments beyond this many bytes (0: keep all)."""
     follow_gate: bool = True
     """Actors wait for the learner's replay gate (off: actors run flat out; for benchmarks)."""
     resume: Path | None = None
-    """Continue the run in this directory (its saved config; learner checkpoint; no new demos). Only
-    --env-steps, --eval-every, --actors, --final-eval-episodes and this machine's options may change
-    (docs/cli.md); a finished run trains on to a larger --env-steps."""
+    """Continue the run in this directory (docs/cli.md: what may change)."""
     resumes: int = 0
     """How many times the run was resumed (set by --resume; moves the actors' seed streams on)."""
     init_actor: Path | None = None
-    """Start the learner's actor from these weights (a clone `mea bench imitation --out` wrote, or a
-    weights file / run dir a learner wrote; the newest version in a directory), with the critic's
-    encoder too where the preset shares it: a fresh run only, checked against the learner preset's
-    network before anything starts (docs/imitation.md)."""
+    """Start the learner's actor from these weights (a fresh run only)."""
     actors: int = 1
     """Number of actor processes."""
     random_steps: int | None = None
-    """Env steps of uniformly random episodes after the demonstrations (the replay's random prefill);
-    None: the learner preset's for the variant (GASv2: 9,000 with paper as the reference, 1,000
-    with cpu-small, 0 with smoke; the Equi-RSAC variants: 0)."""
+    """Env steps of random episodes after the demos; None: the preset's."""
     demos: int | None = None
-    """Scripted demonstrations pre-filled before training; None: the paper's setting for the task
-    (2 for the general manipulation tasks, 10 for surgical_grasp_any)."""
+    """Scripted demonstrations pre-filled; None: the paper's for the task."""
     run_dir: Path | None = None
-    """Run directory (config, checkpoints, eval history, recordings); default runs/<time>-<task>-<variant>."""
+    """Run directory; default runs/<time>-<task>-<variant>."""
     listen: str = "tcp/127.0.0.1:7447"
     """Endpoint of the embedded Zenoh router; services connect to it."""
     connect: tuple[str, ...] = ()
-    """Routers on other hosts the embedded router meshes with (e.g. `tcp/10.0.0.5:7447`; one run across
-    hosts: deploy/multihost.md). With it, actors follow the learned policy even without a learner here."""
+    """Routers on other hosts the embedded router meshes with."""
     namespace: str = "default"
     """Key namespace of this run (separates runs sharing a Zenoh network)."""
     zenoh_config: str = ""
-    """Zenoh's own config file (JSON5) for the embedded router: TLS, user/password authentication,
-    access control. Every service of the run joins it with a client config derived from the same file
-    (RUN_DIR/zenoh-client.json5: its connect_* TLS keys and usrpwd user/password; docs/security.md)."""
+    """Zenoh's own config file (JSON5) for the embedded router (TLS, auth)."""
     authenticate: bool = True
-    """Seal every message with the run's key (RUN_DIR/run.key, created at run start, owner-only):
-    services accept only what the run's own services sealed, each on the topics it may write
-    (proto/seal.py). Services joining from another host need a copy of the key file."""
+    """Seal every message with the run's key (RUN_DIR/run.key)."""
     metrics_port: int = 9100
-    """Port base of the run's /metrics: the launcher serves it (router traffic, services alive), each
-    service the base plus its offset (learner +1, augmenter +2, evaluator +3, actor i +10+i; README).
-    A second run on one host takes another base (e.g. 9200). 0 disables every /metrics."""
+    """Port base of the run's /metrics (services add offsets); 0: off."""
     metrics_addr: str = "127.0.0.1"
-    """Address every /metrics of the run binds to (0.0.0.0: reachable by a Prometheus on another host)."""
+    """Address every /metrics of the run binds to."""
     duration_seconds: float = 0.0
     """Stop after this many seconds (0: run until Ctrl-C / SIGTERM)."""
     stop_grace_seconds: float = 30.0
-    """How long children get to exit after SIGTERM before SIGKILL (the learner writes its final
-    checkpoint then; others exit within a second or two)."""
+    """Seconds between SIGTERM and SIGKILL when stopping children."""
     stop_on_failure: bool = True
-    """If a service keeps exiting (more than restart_limit restarts within restart_window_seconds),
-    stop the whole stack (otherwise keep running without it)."""
+    """Stop the whole stack when a service keeps failing."""
     restart_limit: int = 3
-    """Restarts of a service instance that exited on its own, with backoff (1, 2, 4 ... 30 s), within
-    restart_window_seconds before the launcher gives up on it (0: never restart). A restarted actor
-    records no demos again and takes fresh seeds; a restarted learner resumes from its checkpoint."""
+    """Restarts of a failed service within the window (0: never restart)."""
     restart_window_seconds: float = 600.0
     """Window over which restarts count against restart_limit."""
     services: tuple[str, ...] = SERVICE_ORDER
@@ -146,26 +115,20 @@ class RunConfig:
     log_format: str = "text"
     """Log format of the launcher and its services: json or text."""
     track: bool = False
-    """Also send RUN_DIR/tb to Weights & Biases (pip install 'mea-rl[track]'); the W&B run id is kept in
-    RUN_DIR/wandb-run-id, so a resume continues the same W&B run."""
+    """Also send RUN_DIR/tb to Weights & Biases (mea-rl[track])."""
     wandb_mode: str = "offline"
     """With --track: offline (files under RUN_DIR/wandb, `wandb sync` uploads them) or online."""
     final_eval_seconds: float = 900.0
-    """At the budget, how long to wait for the evaluation of the last weights (final_eval_episodes
-    episodes) before stopping."""
+    """Wait at the budget for the last weights' evaluation, in seconds."""
 
     in_process: bool = False
-    """Run every service in this one process over the in-process bus (debugging, fast tests) instead
-    of separate processes over the embedded Zenoh router; same services, same configs."""
+    """Run every service in this process over the in-process bus."""
 
     learner_args: str = ""
-    """Flags of `mea learner` applied to the learner preset (one quoted string, e.g. `"--sac.bc-filter
-    --demo-fraction 0.25"`): recipe experiments, recorded in config.json. The run's own settings
-    (budget, seed, device, run dir, observation) always come from `mea run`."""
+    """Flags of `mea learner` applied to the learner preset (one string)."""
 
     success_rotations: int | None = None
-    """Rotated copies of each demonstration and online success (every variant; other episodes get
-    4). None: the learner preset's default (cpu-small: 64, the paper: 4 like every episode)."""
+    """Rotated copies of each demo and success; None: the preset's."""
 
     def resolved_success_rotations(self) -> int:
         """``success_rotations``, else the learner preset's default: the CPU recipe clones its few

@@ -21,20 +21,15 @@ class ActorConfig:
     task: str = "block_pull"
     """Task: block_pull, block_pick, drawer_open or surgical_grasp_any."""
     policy: str = "random"
-    """Policy source after the demonstrations: expert, random or learned (latest broadcast weights)."""
+    """Policy after the demonstrations: expert, random or learned."""
     demos: int = 0
     """Successful scripted demonstrations to publish first (alternating probe/direct styles)."""
     random_steps: int = 0
-    """Env steps of uniformly random episodes (the env's own random action) after the
-    demonstrations and before the configured policy: the replay's random prefill (GASv2's reference
-    prefills 9e3 random steps beside its oracle demos). The episode that crosses it runs to its end."""
+    """Env steps of random episodes after the demos (the random prefill)."""
     expert_style: str = "alternate"
     """Expert style: alternate, probe (touch the fixed object first) or direct."""
     expert: str = "observable"
-    """Scripted expert of the general tasks: observable (decides from what it observes: goes to the
-    nearest object and switches if it does not move; each style comes from seeds whose layout gives
-    it) or privileged (the original experts: the style picks the first object by its hidden
-    fixedness, on every seed)."""
+    """Scripted expert of the general tasks: observable or privileged."""
     episodes: int = 0
     """Episodes to run after the demonstrations (0: until stopped)."""
     index: int = 0
@@ -48,23 +43,17 @@ class ActorConfig:
     max_demo_attempts: int = 4
     """Expert attempts per requested demonstration before giving up (only successes count)."""
     incarnation: int = 0
-    """How many times this actor was restarted in this run: its seeds move on by
-    RESTART_SEED_STRIDE each time, so a restarted actor repeats no seed or episode id."""
+    """Restarts of this actor in this run (moves its seeds on)."""
     follow_gate: bool = True
     """Wait while the learner's replay gate says its update budget is used up (demos never wait)."""
     gate_timeout: float = 10.0
     """A gate older than this (s) is ignored (learner gone): the actor runs on."""
     unacked_limit: int = 32
-    """Published episodes kept until the learner acknowledges them (services/actor/outbox.py); with a
-    learner alive the actor waits when this many are unacknowledged."""
+    """Published episodes kept until the learner acknowledges them."""
     resend_seconds: float = 300.0
-    """Publish an episode again when no ack named it for this long (it is also published again at
-    once when an augmenter or learner starts or restarts)."""
+    """Publish an episode again when no ack named it for this long."""
     tensorboard_dir: Path | None = None
-    """Write charts/episodic_return, charts/success, charts/weights_lag and perf/env_steps_per_second
-    here (in its own directory, RUN_DIR/tb/<instance>), means over tensorboard_every episodes after the
-    demonstrations, against the learner's env steps (its own with --no-follow-gate); `mea run`:
-    RUN_DIR/tb. None: not written."""
+    """Write the actor's charts here (TensorBoard); None: not written."""
     tensorboard_every: int = 1
     """Episodes per TensorBoard point (1: each episode, as CleanRL writes them)."""
     service: ServiceConfig = ServiceConfig()

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from services.actor.config import EXPERTS, ActorConfig
-from services.actor.rollout import Actor
+from services.actor.rollout import RolloutActor
 from services.common import config, logs
 from services.common.mcap_io import McapRecorder
 from services.tasks import EXPERT_STYLES, TASK_CLASSES
@@ -39,8 +39,7 @@ class DemosConfig:
     style: str = "alternate"
     """alternate, probe or direct (surgical_grasp_any has only direct: its oracle)."""
     expert: str = "observable"
-    """observable (decides from what it observes; a style's seeds are those whose layout gives it)
-    or privileged (the original experts, which pick the first object by its hidden fixedness)."""
+    """Scripted expert: observable or privileged."""
     seed_base: int = 0
     """First seed."""
     max_attempts: int = 0
@@ -91,7 +90,7 @@ def seeds_metadata(seeds: list[int], attempts: int) -> dict[str, str]:
 def record(cfg: DemosConfig) -> dict:
     actor_cfg = ActorConfig(task=cfg.task, policy="expert", expert_style=cfg.style, expert=cfg.expert,
                             seed_base=cfg.seed_base, depth_image=cfg.depth_image)  # fmt: skip
-    actor = Actor(actor_cfg, "demos")
+    actor = RolloutActor(actor_cfg, "demos")
     attempts_cap = cfg.max_attempts or 4 * cfg.n
     kept, attempts, seeds = 0, 0, []
     with McapRecorder(cfg.out, metadata=run_metadata(cfg), overwrite=cfg.overwrite) as rec:

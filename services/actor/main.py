@@ -1,34 +1,6 @@
 """`mea actor`: run one simulated task with a policy source and publish every finished episode.
 
-Policy sources: `expert` (scripted demonstrations, probe/direct styles), `random` (uniform actions,
-as Equi-RSAC's warm-up episodes), `learned` (the latest broadcast weights, pulled between episodes
-only when newer; stochastic actions, recurrent state carried through the episode). With
-`--demos N` the actor first records N successful expert demonstrations.
-Seeds: actor `index` i uses seed_base + i * 1e6 + k for its k-th episode; evaluation seeds live at
-1e9 and above, so training never sees them.
-
-Replay gate: after its demonstrations, an actor starts a new episode only while the learner's
-latest ``ReplayGate`` (fresher than ``--gate-timeout``) still allows env steps; otherwise it waits
-(``mea_actor_gate_wait_seconds_total``). Before its first policy episode it listens up to 1.5 s
-for a gate; with no learner (no gate seen) it then runs freely. Each actor can overshoot the
-allowance by at most the episode it already started.
-
-Delivery: every published episode is kept until the learner's ``EpisodeAck`` names it, and
-published again when an augmenter or learner (re)starts (its liveliness token appears) or after
-``--resend-seconds`` without an ack (``services/actor/outbox.py``); with a learner alive the actor
-waits while ``--unacked-limit`` episodes are unacknowledged. The learner stores an id once.
-
-Policy input: a learned policy's weights say which observation it was trained on
-(``PolicySpec.observation``): ``voxel`` (the voxel projection of the point clouds, ``policy_image``)
-or ``depth`` (the rendered Equi-RSAC depth image, ``policy_input``). A ``depth`` policy needs the env
-to render that image (``--depth-image``); an actor without it refuses such weights like any blob that
-does not fit (logged, ``mea_actor_bad_weights_total``), keeps the weights it has and runs on.
-
-TensorBoard (``--tensorboard-dir``; `mea run`: RUN_DIR/tb): every ``--tensorboard-every`` episodes
-after the demonstrations, the means of charts/episodic_return, charts/success and charts/weights_lag
-(versions the learner moved on by while an episode ran, seen at the next pull) and
-perf/env_steps_per_second over those episodes, at the learner's env steps (``EpisodeScalars``).
-"""
+Design notes: docs/architecture-notes.md, services/actor/main.py."""
 
 from __future__ import annotations
 
@@ -38,14 +10,14 @@ from collections.abc import Sequence
 
 from proto.topics import EPISODE_ACKS, EPISODES_RAW
 from services.actor.config import PRESETS, ActorConfig
-from services.actor.episodes import EpisodeBuilder
 from services.actor.outbox import Outbox
-from services.actor.rollout import Actor
+from services.actor.rollout import RolloutActor
 from services.common import config
 from services.common.replay_gate import GateFollower
 from services.common.runtime import ServiceContext
 from services.common.scalars import ScalarLog
 from services.common.weights import WeightsClient
+from services.episodes.builder import EpisodeBuilder
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +71,7 @@ def _metrics(ctx: ServiceContext):
 CONSUMERS = ("augmenter", "learner")
 
 
-class Delivery:
+class EpisodeSender:
     """The actor's side of at-least-once delivery (the learner's dedup makes it exactly-once)."""
 
     def __init__(self, ctx: ServiceContext, cfg: ActorConfig, mx: dict) -> None:
@@ -220,11 +192,11 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
     counts = {"env_steps": 0, "episodes": 0, "successes": 0}
     kwargs = {"bus_factory": bus_factory} if bus_factory else {}
     with ServiceContext("actor", cfg.service, counters=lambda: counts, index=cfg.index, **kwargs) as ctx:
-        actor = Actor(cfg, ctx.instance)
+        actor = RolloutActor(cfg, ctx.instance)
         mx = _metrics(ctx)
         weights = WeightsClient(ctx.bus) if cfg.policy == "learned" else None
         gate = GateFollower(ctx.bus, cfg.gate_timeout) if cfg.follow_gate else None
-        delivery = Delivery(ctx, cfg, mx)
+        sender = EpisodeSender(ctx, cfg, mx)
         policy = None
         if cfg.policy == "learned":
             from services.learner.core.policy import PolicyRuntime  # torch: only for learned actors
@@ -237,9 +209,9 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
             mx["step_seconds"].observe(seconds)
 
         def publish(b: EpisodeBuilder) -> None:
-            delivery.wait_for_room()
+            sender.wait_for_room()
             t0 = time.perf_counter()
-            delivery.publish(b.finish(actor.episode_id(b)))
+            sender.publish(b.finish(actor.episode_id(b)))
             mx["publish_seconds"].observe(time.perf_counter() - t0)
             kind = b.meta["policy_kind"]
             counts["episodes"] += 1
@@ -264,9 +236,9 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
         k, lag = 0, None
         scalars = EpisodeScalars(cfg, ctx.instance, gate, counts["env_steps"])
         while (cfg.episodes == 0 or k < cfg.episodes) and not ctx.shutdown.is_set():
-            delivery.tend()
+            sender.tend()
             if gate is not None:
-                mx["gate_wait"].inc(gate.wait(ctx.shutdown, delivery.tend))
+                mx["gate_wait"].inc(gate.wait(ctx.shutdown, sender.tend))
             if weights is not None:
                 acted = policy.version
                 _load_weights(weights, policy, mx, counts, cfg.depth_image, cfg.task)
@@ -289,10 +261,10 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
             scalars.episode(episode, counts["env_steps"], lag)
             k += 1
         scalars.close()
-        delivery.flush(cfg.resend_seconds)  # a stop by SIGTERM returns at once
+        sender.flush(cfg.resend_seconds)  # a stop by SIGTERM returns at once
         if gate is not None:
             gate.close()
-        delivery.close()
+        sender.close()
         actor.env.close()
     return 0
 

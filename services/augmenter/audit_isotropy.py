@@ -37,7 +37,7 @@ def drag_isotropy(
 ) -> list[dict[str, Any]]:
     """One row per angle: the movable object's slide along and across its push (mm) and its own
     turn (deg); [] for tasks without a free movable object (a drawer slides on its joint)."""
-    import pybullet as pb
+    import pybullet as pb  # deferred: pybullet, only where an env exists
 
     body = getattr(env.task, "movable", None)
     if body is None or pb.getNumJoints(body, physicsClientId=env.client) > 0:

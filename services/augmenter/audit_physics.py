@@ -35,7 +35,7 @@ The noise floor, measured by the same code on un-augmented data:
   them through other pixels and voxels: rotated copies are judged against their own floor.
 
 ``audit_episode(env, aug, source, tol)`` is the entry point (the augmenter's background audit
-calls it given an env; ``mea audit``, ``services.bench.audit``, reports on many).
+calls it given an env; ``mea audit``, ``mea_tools.audit``, reports on many).
 """
 
 from __future__ import annotations

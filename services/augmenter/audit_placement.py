@@ -108,7 +108,7 @@ def plan_placement(env: ManipulationEnv, aug: Episode) -> Placement:
     phi = rotation_of(aug)
     if phi == 0.0:
         return Placement(0.0, np.zeros(2), aug)
-    from services.tasks.robot import WORKSPACE, YAW_LIMIT
+    from services.tasks.robot import WORKSPACE, YAW_LIMIT  # deferred: pybullet, only for turned copies
 
     turn = yaw_branch(aug, YAW_LIMIT)
     if turn is None:

@@ -62,7 +62,7 @@ class PhysicsAudit:
         key = (copy.task, int(copy.points.shape[2]))
         env = self._envs.get(key)
         if env is None:
-            from services.tasks import EnvSettings, make_env
+            from services.tasks import EnvSettings, make_env  # deferred: pybullet, on the audit thread
             from services.tasks.camera import CameraSettings
 
             env = make_env(copy.task, EnvSettings(camera=CameraSettings(points_per_segment=key[1])))

@@ -15,21 +15,19 @@ class AugmenterConfig:
     augment: AugmentSettings = field(default_factory=AugmentSettings)
     """What is made of each raw episode: copies, which episodes get MEA, projection."""
     queue: int = 16
-    """Bounded input queue (raw episodes). When full, the receive thread waits: backpressure on the
-    actors through Zenoh's BLOCK congestion control; nothing accepted is dropped."""
+    """Bounded input queue of raw episodes (full: backpressure)."""
     shard: int = 0
     """This augmenter's shard, 0 <= shard < shards."""
     shards: int = 1
-    """Augmenters sharing the load: each processes the raw episodes with crc32(actor_id) % shards ==
-    shard, so all episodes of one actor go to one augmenter, in order."""
+    """Augmenters sharing the load (by crc32(actor_id) % shards)."""
     audit_fraction: float = 0.0
-    """Fraction of MEA copies replayed through physics in a background thread (0: off)."""
+    """Share of MEA copies audited in physics (0: off)."""
     audit_queue: int = 4
-    """MEA copies waiting for the audit at most; a copy that finds the queue full is not audited."""
+    """MEA copies waiting for the audit at most."""
     max_episodes: int = 0
-    """Stop after receiving this many valid raw episodes, in this shard or not (0: until stopped)."""
+    """Stop after this many valid raw episodes (0: until stopped)."""
     drain_seconds: float = 3.0
-    """On shutdown, time allowed to augment what is already queued and finish pending audits."""
+    """Seconds to finish queued work on shutdown."""
     service: ServiceConfig = ServiceConfig()
     """Identity, transport, metrics and logs."""
 

@@ -1,49 +1,6 @@
 """`mea augmenter`: turn every raw episode into what the learner stores, and publish it.
 
-Loop: receive a raw ``Episode`` on ``EPISODES_RAW`` (any actor), skip it unless it belongs to this
-shard, run ``augment_episode`` (raw + isometric copies + MEA copies, all re-projected to uint8
-policy images) and publish every output on ``EPISODES_AUGMENTED`` with ``source=<instance>``: the
-raw episode first, then its isometric copies, then its MEA copies. The learner consumes only that
-topic, so raw episodes reach it through here too.
-
-Input backpressure
-    Raw episodes wait in a bounded queue (``--queue`` episodes) between the Zenoh receive thread
-    and this loop. When the queue is full the receive thread waits until there is room; since
-    episodes travel with BLOCK congestion control, the router's queue towards this process then
-    fills and the actors' ``publish`` calls block: a slow augmenter slows the actors down instead
-    of losing episodes. Nothing accepted is dropped. Publishing outputs blocks the same way when
-    the learner is slow, which in turn stops this loop from draining its queue. (Side effect of
-    the shared session: while the receive thread waits, nothing else arrives in this process.)
-    On shutdown the subscription is closed first (nothing new is accepted), then what is already
-    queued is still augmented and published, for at most ``--drain-seconds``.
-
-Sharding
-    Several augmenters can share the load: with ``--shards n``, augmenter ``--shard i`` processes
-    a raw episode iff ``crc32(episode.actor_id) % n == i`` and skips (and counts) the others. The
-    key is the actor id rather than the episode id so that every episode of one actor goes to the
-    same augmenter, in the order that actor published them: per-actor order (demonstrations
-    first, then the actor's own stream) survives sharding, and one actor's burst cannot be split
-    across augmenters and reordered. crc32 is stable across processes and restarts (``hash`` of a
-    str is salted per process). Every shard still receives and decodes every raw episode; the
-    skip costs a decode (~0.5 ms for a 35-step episode), not an augmentation.
-
-Bad input
-    A message that fails to decode or validate is counted by the bus
-    (``mea_bus_rejected_messages_total{topic="episodes_raw"}``) and skipped; an episode whose
-    augmentation or publication raises is logged, counted (``mea_augmenter_failed_episodes_total``)
-    and skipped. Neither stops the service.
-
-Physics audit (optional, ``--audit-fraction f``)
-    A background thread replays a fraction f of the MEA copies through the simulator and exports
-    the fraction of audited transitions found valid (``mea_augmenter_audit_valid_ratio``); it never
-    slows augmentation (``services.augmenter.audit_worker``).
-
-Metrics (``mea_augmenter_*``, ``services.augmenter.metrics``): episodes in (processed /
-skipped_shard), episodes out (raw / isometric / mea), transitions out, augment seconds, latency
-from raw received to its last output published, age of raw episodes when published, MEA guard
-rejections, cut and empty MEA copies, input queue depth, failed episodes, audit counters and the
-audit valid fraction.
-"""
+Design notes: docs/architecture-notes.md, services/augmenter/main.py."""
 
 from __future__ import annotations
 

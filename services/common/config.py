@@ -1,7 +1,8 @@
 """Config plumbing: frozen dataclasses with presets, parsed by tyro, saved with each run.
 
 Every command takes ``--preset NAME`` first (e.g. ``paper``, ``cpu-small``); any other flag then
-overrides a field of that preset. Field docstrings are the ``--help`` text.
+overrides a field of that preset. Each field's one-line docstring is its ``--help`` line
+(details in docs/options.md).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import io
 import json
 import shlex
 import sys
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
@@ -31,11 +33,11 @@ class ServiceConfig:
     """What every service process shares: identity, transport, metrics and logs."""
 
     instance_id: str = ""
-    """Instance id (unique per service kind); empty picks `<service>-<pid>`."""
+    """Instance id; empty: <service>-<pid>."""
     zenoh: ZenohConfig = ZenohConfig()
     """How to join the Zenoh network."""
     metrics_port: int = -1
-    """Prometheus /metrics port; -1 uses the service's default (README), 0 disables."""
+    """/metrics port; -1: the service's default, 0: off."""
     metrics_addr: str = "127.0.0.1"
     """Address /metrics binds to (0.0.0.0 inside containers)."""
     log_format: str = "json"
@@ -47,12 +49,9 @@ class ServiceConfig:
     limits: Limits = DEFAULT_LIMITS
     """Caps applied while decoding any received message (sizes, nesting, strings)."""
     topic_caps: tuple[str, ...] = ()
-    """Per-topic size caps replacing the defaults (proto/README.md, Topics table), each
-    `TOPIC=BYTES`, e.g. `episodes_raw=134217728`; larger messages are refused and counted."""
+    """Per-topic size caps, each TOPIC=BYTES."""
     run_key_file: str = ""
-    """The run's key (hex, owner-only file; `mea run` creates RUN_DIR/run.key): every message is sealed
-    with it and only messages sealed with it by a service allowed on the topic are accepted. Empty:
-    the bus is not authenticated (anyone on the Zenoh network can write to it)."""
+    """The run's key file (sealed messages); empty: none."""
 
     def __post_init__(self) -> None:
         if self.log_format not in ("json", "text"):
@@ -125,7 +124,11 @@ def _one_line(event: Any) -> None:
 
 def cli(cls: type[C], argv: Sequence[str], prog: str, description: str, default: C | None = None) -> C:
     """``tyro.cli`` whose refusals are one line (``prog: what is wrong``) with exit code 2, like every
-    other refusal of bad input; ``--help`` is tyro's."""
+    other refusal of bad input; ``--help`` is one line per option (`help_text`)."""
+    args = list(argv)
+    if any(a in HELP_FLAGS for a in (args[: args.index("--")] if "--" in args else args)):  # as tyro
+        print(help_text(cls, prog, description, default))
+        raise SystemExit(0)
     try:
         with _parse_error_hook(_one_line):
             return tyro.cli(cls, prog=prog, description=description, args=list(argv), default=default)
@@ -133,6 +136,68 @@ def cli(cls: type[C], argv: Sequence[str], prog: str, description: str, default:
         refuse(prog, str(exc))
     except ValueError as exc:  # the checks of a config tyro builds past its hook (a union's member)
         refuse(prog, str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid value")
+
+
+HELP_FLAGS = ("-h", "--help")
+HELP_DEFAULT_CHARS = 32
+"""Longer defaults are cut in ``--help`` (the saved config.json holds every value)."""
+
+
+def help_text(cls: type, prog: str, description: str, default: Any = None) -> str:
+    """``--help``: each option's flags, the first line of its docstring and its default on one line,
+    grouped as tyro groups them (docs/options.md has the details). tyro's own boxed help wraps every
+    docstring whole and pads every line, four times the bytes for the same options."""
+    with warnings.catch_warnings():  # tyro's flags, metavars and groups (get_parser: tyro pinned)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        parser = tyro.extras.get_parser(
+            cls,
+            prog=prog,
+            description=description,
+            default=default,
+            config=(tyro.conf.HelptextFromCommentsOff,),
+        )  # `#` comments explain the code; only docstrings are help
+    out = [f"usage: {prog} [-h] [OPTIONS]", ""]
+    out += [description, ""] if description else []
+    for group in parser._action_groups:
+        actions = [a for a in group._group_actions if a.help != argparse.SUPPRESS]
+        if not actions:
+            continue
+        about = _first_line(group.description or "")
+        out.append(f"{group.title}:" + (f" {about}" if about else ""))
+        for action in actions:
+            out.append(_option_line(action))
+        out.append("")
+    return "\n".join(out).rstrip() + "\n"
+
+
+def _first_line(text: str) -> str:
+    return text.strip().split("\n", 1)[0].strip()
+
+
+def _paired(flags: Sequence[str]) -> list[str]:
+    """A boolean's ``--x.flag, --x.no-flag`` as ``--x.[no-]flag``."""
+    if len(flags) == 2:
+        on, off = flags
+        head, dot, leaf = on.rpartition(".")
+        prefix, leaf = (head + dot, leaf) if dot else ("--", on[2:])
+        if off == f"{prefix}no-{leaf}":
+            return [f"{prefix}[no-]{leaf}"]
+    return list(flags)
+
+
+def _option_line(action: argparse.Action) -> str:
+    flags = ", ".join(_paired(action.option_strings)) or str(action.metavar or action.dest)
+    if action.option_strings and action.metavar and action.nargs != 0:
+        flags += f" {action.metavar}"
+    text = (action.help or "").replace("%%", "%").strip()  # argparse escapes % in help
+    hint = ""
+    if text.endswith(")") and "(default: " in text:  # tyro appends the default to the whole docstring
+        text, _, value = text.rpartition("(default: ")
+        value = value[:-1]
+        if len(value) > HELP_DEFAULT_CHARS:
+            value = value[: HELP_DEFAULT_CHARS - 3] + "..."
+        hint = f" (default: {value})"
+    return f"  {flags:<26} {_first_line(text)}{hint}".rstrip()
 
 
 def _parse_error_hook(hook):

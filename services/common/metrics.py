@@ -29,7 +29,7 @@ from services.common.bus.base import Bus
 
 log = logging.getLogger(__name__)
 
-# Default /metrics ports (README documents them); actors use ACTOR_BASE + index.
+# Default /metrics ports (docs/metrics.md, "Ports"); actors use ACTOR_BASE + index.
 DEFAULT_PORTS = {
     "launcher": 9100,
     "router": 9100,

@@ -19,22 +19,17 @@ class EvaluatorConfig:
     task: str = "block_pull"
     """Task: block_pull, block_pick or drawer_open."""
     episodes: int = 10
-    """Evaluation episodes M per version (Equi-RSAC: 10; `mea run` passes its --eval-episodes, 20)."""
+    """Evaluation episodes per version."""
     every_env_steps: int = 250
-    """Evaluate the newest version once the learner's env steps advanced by this much since the last
-    evaluation (Equi-RSAC: 250 for Pull and Drawer, 500 for Pick). The first version is evaluated as
-    soon as it exists."""
+    """Evaluate the newest version every this many learner env steps."""
     seed_base: int = EVAL_SEED_BASE
-    """First held-out seed: every evaluation runs seeds seed_base .. seed_base + M - 1, so versions are
-    compared on the same episodes (actors' seeds stay below 1e9)."""
+    """First held-out seed (every evaluation runs the same seeds)."""
     run_dir: Path | None = None
-    """Run directory: the eval history is appended to RUN_DIR/eval/history.jsonl (none: not recorded)."""
+    """Run directory for RUN_DIR/eval/history.jsonl (none: not recorded)."""
     final_env_steps: int = 0
-    """The run's env-step budget: once the learner reaches it, the next version is evaluated off the
-    cadence, so the run ends with an evaluation at its budget (0: no budget)."""
+    """The run's env-step budget, evaluated off the cadence (0: none)."""
     final_episodes: int = 0
-    """Episodes of an evaluation at or past the budget (final_env_steps), on seeds seed_base ..
-    seed_base + final_episodes - 1 (0: --episodes; `mea run` passes its --final-eval-episodes, 50)."""
+    """Episodes of an evaluation at the budget (0: --episodes)."""
     points_per_segment: int = 256
     """Points per segment in each observation (as the actors')."""
     depth_image: bool = False
@@ -42,22 +37,17 @@ class EvaluatorConfig:
     max_evaluations: int = 0
     """Stop after this many evaluations (0: until stopped)."""
     first_gate_wait: float = 2.0
-    """Before the first evaluation, wait this long (s) for a replay gate so the version gets its env steps."""
+    """Seconds to wait for a replay gate before the first evaluation."""
     keep_weights: int = 100
-    """Keep the weights of the newest this many evaluated versions in RUN_DIR/eval/weights (0: none), so a
-    version the history scored can be served (`mea serve --weights RUN_DIR --version N`)."""
+    """Keep the weights of the newest this many evaluated versions."""
     torch_threads: int = 1
     """torch intra-op threads for the policy (0: torch's default)."""
     tensorboard_dir: Path | None = None
-    """Write eval/success_rate, eval/return, eval/length and eval/grasp_score of each evaluation here
-    (in its own directory, <dir>/<instance>), against the learner's env steps, and the videos as
-    animations (`mea run`: RUN_DIR/tb; none: not written)."""
+    """Write eval/* scalars and videos here (TensorBoard); none: off."""
     videos: int = 2
-    """Episodes of a chosen evaluation recorded as an MP4 in RUN_DIR/eval/videos (the scene beside the
-    policy's image; its first held-out seeds): the 1st evaluation, every video_every-th after it, and
-    the one at the budget. 0: none. Needs run_dir."""
+    """Episodes filmed per filmed evaluation (MP4); 0: none."""
     video_every: int = 5
-    """Film every this many-th evaluation (counted over the run's history, so a restart keeps the count)."""
+    """Film every this many-th evaluation."""
     video_size: int = 256
     """Pixels per side of each picture in a video frame."""
     service: ServiceConfig = ServiceConfig()

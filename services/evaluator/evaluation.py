@@ -2,9 +2,9 @@
 own env, summarised into what the evaluator reports (``EvalReport``) and records (a history line).
 
 Apart from transport, metrics and storage (the shell publishes, counts and appends), but not a pure
-core: it steps the simulator through the actor's rollout. The policy input is
-``services.actor.rollout.policy_input(obs, observation)`` (the voxel ``policy_image`` or the depth
-image, as the weights' spec says), the rollout ``services.actor.rollout.run_episode``.
+core: it steps the simulator through the shared episode rollout. The policy input is
+``services.episodes.rollout.policy_input(obs, observation)`` (the voxel ``policy_image`` or the depth
+image, as the weights' spec says), the rollout ``services.episodes.rollout.run_episode``.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ import numpy as np
 
 from proto.control import EvalReport
 from proto.weights import WeightsBlob
-from services.actor.episodes import EpisodeBuilder
-from services.actor.rollout import policy_input, run_episode
-from services.evaluator.core.metrics import EpisodeResult, EvalSummary, episode_result, summarize
+from services.episodes.builder import EpisodeBuilder
+from services.episodes.rollout import policy_input, run_episode
+from services.episodes.scores import EpisodeResult, EvalSummary, episode_result, summarize
 from services.evaluator.video import Film
 from services.tasks import ManipulationEnv, Observation
 

@@ -2,7 +2,7 @@
 
 Written by the evaluator service as each evaluation finishes (appended and fsynced), read back by a
 restarted evaluator (cadence, improvement timestep), by ``mea plot`` and by ``mea bench learning``.
-The arithmetic on the records lives in the pure ``services.evaluator.core.metrics``; this module is
+The arithmetic on the records lives in the pure ``services.evaluator.core.curves``; this module is
 only the file.
 
 A line that does not parse (typically a last line truncated by a crash) is skipped with a logged

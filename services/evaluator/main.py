@@ -1,38 +1,8 @@
 """`mea evaluator`: evaluate the learner's broadcast weights on held-out seeds, like Equi-RSAC's eval.
+A service of its own so that evaluation never touches the training envs, runs the deterministic
+policy and compares every version on the same episodes.
 
-Why a service of its own: evaluation must not touch the training envs (pitfall P5: Equi-RSAC's eval
-env is the training env re-seeded, and its resets shift the training episodes' layout), must use
-the deterministic policy (tanh of the mean), and must compare every version on the same episodes.
-
-This module is the transport shell around ``config`` (the settings; `mea run` derives them in
-``services.plan``), ``core.schedule`` (when a version is due, on which held-out seeds),
-``evaluation`` (the episodes, the report and the history record), ``core.metrics`` and ``history``
-(``RUN_DIR/eval/history.jsonl``). Each cycle (about 5 a second) it tracks the learner's latest
-``ReplayGate`` (its ``inserted_steps`` are the training env steps) and, only once the schedule says
-a version is due, pulls the newest one (pull-if-newer: versions announced in between are never
-downloaded) into a fresh deterministic ``PolicyRuntime``. A blob that does not load, or wants the
-rendered depth image from an evaluator started without ``--depth-image``, is logged, counted and
-skipped. While episodes run, gates and weights announcements keep being consumed (bounded BLOCK
-subscriptions: a full one would stall this process's transport and the learner). Each evaluation
-is published as an ``EvalReport`` (``env_steps``: the gate's steps when the version was pulled, -1
-if no gate was seen) and appended to the history. A shutdown during an evaluation abandons it;
-history lines already in the file (a restarted evaluator) count for the improvement timestep and
-the cadence.
-
-With ``tensorboard_dir`` each evaluation's eval/success_rate, eval/return, eval/length and
-eval/grasp_score go to TensorBoard against the learner's env steps. Chosen evaluations (``videos``,
-``video_every``: the 1st, every 5th after it and the one at the budget) film their first episodes
-(``video.Film``): RUN_DIR/eval/videos/v<version>_<env steps>steps.mp4, and the same frames as an
-animation under eval/video in TensorBoard, with the file's path under eval/video_path. Filming
-leaves the episodes as they are; its cost is measured in docs/watching-training.md.
-
-Metrics (``mea_evaluator_*``): evaluations_total, success_rate, mean_return, mean_length,
-grasp_score, policy_version and env_steps of the last evaluation, episode_seconds (histogram),
-bad_weights_total{reason}, improvement_env_steps (-1 while none). Heartbeat counters (the first
-four are shown by `mea run`): evaluations, success_rate, env_steps, version (-1: none yet), then
-grasp_score, mean_return, learner_env_steps, bad_weights and, once there is one,
-improvement_env_steps.
-"""
+Design notes: docs/architecture-notes.md, services/evaluator/main.py."""
 
 from __future__ import annotations
 
@@ -49,8 +19,9 @@ from services.common.replay_gate import GateTracker
 from services.common.runtime import ServiceContext, subscribing_bus_factory, torch_threads
 from services.common.scalars import ScalarLog
 from services.common.weights import WeightsClient
+from services.episodes.scores import EvalSummary
 from services.evaluator.config import PRESETS, EvaluatorConfig
-from services.evaluator.core.metrics import EvalSummary, run_improvement_timestep
+from services.evaluator.core.curves import run_improvement_timestep
 from services.evaluator.core.schedule import last_evaluated_env_steps
 from services.evaluator.evaluation import EpisodeRunner, Evaluation
 from services.evaluator.history import HISTORY, append_history, read_history

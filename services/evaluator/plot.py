@@ -3,7 +3,7 @@
 Reads each run's ``RUN_DIR/eval/history.jsonl`` (written by ``mea evaluator``), groups runs by a
 label (runs with the same label are seeds of one configuration), and draws success rate against
 training env steps: the mean over a label's runs as a line, mean ± std as a shaded band. Runs are
-put on a common env-step grid first (``services.evaluator.core.metrics.align``: step-wise hold of
+put on a common env-step grid first (``services.evaluator.core.curves.align``: step-wise hold of
 the last evaluation by default, or linear interpolation; a run contributes only within its own
 evaluated span). It also prints one table row per label: runs, evaluations, final success (the
 last evaluation of each run, mean ± std over runs), the area under the success curve (AUC: mean
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from services.common.config import OneLineParser
-from services.evaluator.core.metrics import (
+from services.evaluator.core.curves import (
     INTERPOLATIONS,
     align,
     common_grid,

@@ -42,7 +42,7 @@ from typing import Protocol
 import numpy as np
 
 from proto.actions import ACTION_DIM, DELTA_THETA, DELTA_XYZ, JAW
-from services.actor.rollout import policy_input
+from services.episodes.rollout import policy_input
 from services.inference.core.envelope import Limits
 from services.tasks import ManipulationEnv, make_env
 from services.tasks.env import Observation

@@ -27,15 +27,13 @@ class ServeConfig:
     """Serve the newest policy to robots: act(observation) -> action over Zenoh, behind a safety envelope."""
 
     weights: str = ""
-    """Serve this weights file (or the newest in this run dir / weights folder) and nothing else; empty:
-    follow the learner's announcements on the bus."""
+    """Serve this weights file (or a run dir's newest); empty: follow the bus."""
     version: int = -1
     """With --weights naming a directory: the version to serve (-1: the newest file there)."""
     run_id: str = ""
     """Serve only weights of this training run (empty: the lineage of the first version loaded)."""
     limits_file: str = ""
-    """JSON file of per-robot envelopes (see `mea serve --help` docs in services/inference/config.py);
-    empty: the built-in defaults for every robot."""
+    """JSON file of per-robot envelopes; empty: the built-in defaults."""
     max_observation_age: float = 0.5
     """Watchdog: an observation stamped longer ago than this (s) is answered with a hold."""
     session_timeout: float = 600.0
@@ -45,7 +43,7 @@ class ServeConfig:
     stochastic: bool = False
     """Sample actions instead of serving the mean (the evaluator's deterministic policy)."""
     torch_threads: int = 1
-    """torch intra-op threads (1 keeps act() latency steady beside other services; 0: torch's default)."""
+    """torch intra-op threads (0: torch's default)."""
     service: ServiceConfig = ServiceConfig()
     """Identity, transport, metrics and logs."""
 

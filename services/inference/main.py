@@ -1,24 +1,6 @@
 """`mea serve`: the real-robot inference service, a shell around ``core.sessions.InferenceCore``.
 
-Answers SERVE_RESET and SERVE_ACT queries (``proto.inference``) on ``serve/{reset,act}/<instance>``
-from the bus's query thread, one at a time, so a weights swap always falls between two requests.
-Its main loop follows the weights and the e-stop:
-
-* **Weights.** Pinned (``--weights FILE|DIR``, checked at start: seal with the run's key, digest,
-  network) or followed: the learner's announcements are pulled when newer (``WeightsClient``) and
-  offered to the core, which keeps serving the old version when the new one is refused. An
-  announcement or blob the bus itself refuses (unsealed or forged, bad digest, schema) never arrives
-  and is counted as ``invalid``.
-* **E-stop.** Each operator's latest ``EStop`` is its state (latched: an operator that engaged it
-  must release it); while any operator's is engaged every robot gets holds. Operators republish
-  their state every second, so a server started later learns it within one. (Robots also watch the
-  operators' and this server's liveliness themselves.)
-
-Metrics (``mea_inference_*``): act_seconds (histogram of server time per act), requests_total{kind},
-holds_total{reason}, clamps_total{reason}, sessions, policy_version (newest loaded), served_version
-(of the last action), swaps_total, weights_refused_total{reason}, swap_to_first_action_seconds (from a
-version's announcement to the first action it served), estop_engaged.
-"""
+Design notes: docs/architecture-notes.md, services/inference/main.py."""
 
 from __future__ import annotations
 

@@ -39,7 +39,7 @@ from services.common.config import ServiceConfig
 from services.common.mcap_io.recorder import McapRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import ServiceContext, subscribing_bus_factory
-from services.evaluator.core.metrics import EpisodeResult, episode_result, summarize
+from services.episodes.scores import EpisodeResult, episode_result, summarize
 from services.inference.adapter import RobotAdapter, RobotObservation, SimRobot, sim_limits
 from services.inference.core.envelope import Limits
 from services.inference.core.robot_safety import ROBOT_HOLD_REASONS, RobotSafety
@@ -54,12 +54,11 @@ class RobotConfig:
     """Drive a robot through an inference server (`mea serve`); --sim drives one of the project's tasks."""
 
     sim: bool = False
-    """Drive a simulated arm (the only arm this build drives; a real one plugs in as a RobotAdapter)."""
+    """Drive a simulated arm (the only arm this build drives)."""
     task: str = "block_pull"
     """Task the simulated arm performs."""
     robot_id: str = ""
-    """Session id at the server (its envelope is chosen by it); empty: sim-psm for the surgical task,
-    sim-panda otherwise."""
+    """Session id at the server; empty: sim-psm or sim-panda by task."""
     server: str = ""
     """Instance id of the inference server; empty: the first one whose liveliness token is seen."""
     episodes: int = 10
@@ -84,8 +83,7 @@ class RobotConfig:
     out: str = ""
     """JSON summary file; empty: printed only."""
     write_limits: str = ""
-    """Write the simulated arm's envelope (``sim_limits``) as a limits file for `mea serve --limits-file`,
-    keyed by this robot's id, and exit."""
+    """Write the simulated arm's envelope as a limits file, and exit."""
     points_per_segment: int = 256
     """Points per segment the simulated camera gives (the evaluator's default)."""
     depth_image: bool = False

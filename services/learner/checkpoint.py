@@ -1,32 +1,6 @@
 """Atomic learner checkpoints, loaded without unpickling arbitrary objects, the newest few kept.
 
-Each checkpoint is one file, ``<run_dir>/checkpoints/learner-<n>.pt`` (``n`` counts up from 1), and
-holds everything a resumed learner needs: networks, optimisers, log alpha, replay contents,
-rate-limiter state, counters, RNG states and the weights version/run id (the version lineage). It is
-written with ``torch.save`` to a temporary file in the same directory (``.learner.pt.tmp``, one name,
-so a crash mid-write leaves at most one), fsynced, then renamed to its name (``os.replace`` is atomic
-on POSIX): a crash mid-write leaves the earlier checkpoints intact.
-
-Retention: once the new file is in place, the oldest go so that at most ``keep`` remain and, with a
-``max_bytes`` budget, they take at most that much together (``services.common.retention.to_delete``);
-the newest is never deleted, nor the file being written (it is not a checkpoint until renamed). The
-replay's contents dominate the size, which grows as it fills (hundreds of MB with the paper preset),
-and a write needs room for one more file until the oldest goes. ``load`` tries the checkpoints
-newest first and falls back to the next if one is unreadable, so one bad disk block does not lose
-the run. Checkpoints from before numbering (``learner.pt``, then ``learner.prev.pt``) count
-as older than every numbered one: they are read and, in time, deleted like them.
-
-Loading uses ``torch.load(weights_only=True)``: only tensors, numbers, strings, lists and dicts can
-come back, never arbitrary Python objects. Numpy arrays (replay) travel as tensors and numpy's RNG
-state as a JSON string. Every tensor is written from the CPU and read onto it (``map_location``),
-whatever device the learner trains on: a run checkpointed on a GPU resumes on a CPU and back (the
-networks' ``load_state_dict`` copies onto their device, the optimisers move their state to it).
-
-What goes in (``save_trainer``) and how it comes back into a trainer (``restore_trainer``) is
-assembled here too, beside the file format, so the two cannot drift apart. ``due`` says when the
-service writes one: every ``checkpoint_minutes`` and every ``checkpoint_every`` updates, if set.
-``published.json`` beside them (the lineage of announced versions) is never rotated.
-"""
+Design notes: docs/architecture-notes.md, services/learner/checkpoint.py."""
 
 from __future__ import annotations
 

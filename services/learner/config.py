@@ -76,67 +76,57 @@ class LearnerConfig:
     """Train a learner (recurrent SAC or GASv2) from replayed episodes and broadcast its policy's weights."""
 
     algorithm: AlgorithmSettings = field(default_factory=SacConfig)
-    """The algorithm and its settings: ``SacConfig`` (equi_rsac, rsac) or ``GasV2Config`` (gasv2)."""
+    """The algorithm and its settings (SacConfig or GasV2Config)."""
     replay_capacity: int = 100_000
-    """Replay capacity in transitions (raw and augmented copies alike; demonstrations are never evicted)."""
+    """Replay capacity in transitions (demos never evicted)."""
     batch_size: int = 32
-    """Whole episodes per update (SAC); windows of chunk_length per update (gasv2)."""
+    """Episodes (SAC) or windows (gasv2) per update."""
     demo_fraction: float = 0.0
-    """Share of every batch drawn from the demonstration set (demos and all their augmented copies),
-    the rest from the other episodes (RLPD / SERL symmetric sampling); 0 samples uniformly (the paper)."""
+    """Share of each batch from the demos (0: uniform)."""
     successes_as_demos: bool = False
-    """Episodes that succeeded (``Episode.succeeded``: online successes and their copies) join the demonstration set
-    for demo_fraction and the BC term: self-imitation of what already worked (off: demos only)."""
+    """Successful episodes join the demonstration set."""
     seq_len: int = 50
-    """Longest episode stored (the task's time limit); SAC pads its batches to it."""
+    """Longest episode stored (the task's time limit)."""
     samples_per_insert: float = 1.0
-    """Updates per raw env step (Equi-RSAC: one update per env step)."""
+    """Updates per raw env step (Equi-RSAC: 1)."""
     min_steps: int = 100
     """Raw env steps in replay before the first update."""
     error_buffer: float = 200.0
-    """Slack (in updates) around samples_per_insert x env steps before either side waits."""
+    """Slack in updates before the replay gate waits."""
     publish_every: int = 10
     """Announce new weights every this many updates."""
     checkpoint_minutes: float = 10.0
-    """Checkpoint period (and always on shutdown); 0 disables periodic checkpoints."""
+    """Checkpoint period (and on shutdown); 0: off."""
     checkpoint_every: int = 0
     """Also checkpoint every this many updates (0: off)."""
     keep_checkpoints: int = 3
-    """Checkpoints kept (the newest; at least 1): --resume falls back to an older one if the newest
-    is unreadable. Each holds the replay's contents (hundreds of MB with the paper preset)."""
+    """Checkpoints kept, newest first (at least 1)."""
     checkpoint_max_bytes: int = 0
-    """Also delete the oldest checkpoints while they take more than this many bytes in all; the
-    newest always stays (0: no budget, keep_checkpoints alone)."""
+    """Bytes of checkpoints kept at most (0: no budget)."""
     run_dir: Path = Path("runs/learner")
     """Directory for the resolved config and checkpoints/."""
     run_id: str = ""
-    """Version lineage id; empty derives one from run_dir and the start time (kept on --resume)."""
+    """Version lineage id; empty: from run_dir and time."""
     resume: bool = False
-    """Continue from run_dir/checkpoints if there is a checkpoint there."""
+    """Continue from run_dir/checkpoints if any."""
     init_actor: Path | None = None
-    """Start the actor from this weights file (or the newest in this run dir / weights folder: a clone
-    from `mea bench imitation`, or weights a learner wrote) when there is no checkpoint to continue;
-    with a shared encoder the critic's encoder too (``services.learner.init_actor``)."""
+    """Start the actor from these weights (no checkpoint)."""
     max_updates: int = 0
     """Stop after this many updates (0: until stopped)."""
     max_env_steps: int = 0
-    """Env-step budget of the run: the replay gate never allows more (actors stop there); 0: none."""
+    """Env-step budget of the run (0: none)."""
     tensorboard_dir: Path | None = None
-    """Write the training scalars (means over tensorboard_every updates, against env steps) here as
-    TensorBoard events; None: off (`mea run` sets RUN_DIR/tb)."""
+    """TensorBoard directory of the scalars; None: off."""
     tensorboard_every: int = 50
     """Updates per TensorBoard point."""
     threads: int = 0
     """torch intra-op threads (0: torch's default)."""
     device: str = "cpu"
-    """torch device of the networks, optimisers and batches: cpu, cuda or cuda:N (a GPU workstation).
-    The replay stays in host memory; published weights and checkpoints are on the CPU, so a run
-    resumes on another device. On CUDA: TF32 matmuls, and the update metrics are read from the
-    device every tensorboard_every updates (means), not after each update."""
+    """torch device: cpu, cuda or cuda:N."""
     seed: int = 0
     """Seed of networks, sampling and exploration noise."""
     queue: int = 64
-    """Incoming episodes buffered between Zenoh and the ingest thread."""
+    """Incoming episodes buffered before ingest."""
     gate_seconds: float = 0.5
     """Period of the replay gate."""
     service: ServiceConfig = ServiceConfig()
@@ -171,7 +161,7 @@ _CPU_SMALL_SAC = SacConfig(
 )
 SAC_PRESETS: dict[str, LearnerConfig] = {
     "paper": LearnerConfig(),
-    # cpu-small: the recipe for two CPU cores and a 20K env-step budget (README, "Presets"). Cuts:
+    # cpu-small: the recipe for two CPU cores and a 20K env-step budget (docs/learners.md, "Presets"). Cuts:
     # halved network widths, 8 episodes per batch instead of 32, 0.5 updates per env step instead of
     # 1 (the replay gate lets actors run 2 steps per update). Additions, each a field: half of every
     # batch from the demonstration set (demos, their copies, online successes), a BC term, alpha from
@@ -207,7 +197,7 @@ SAC_PRESETS: dict[str, LearnerConfig] = {
 # in simulation only). Same demo share, BC, temperature and return bound; no shared encoder (the
 # critic has none) and no critic LayerNorm (the state critic's MLPs have their own). Its updates are
 # cheaper, so it affords the paper's 1.0 update per env step in about 35 minutes for 20K env steps
-# (Block Pull at 20K: 0.48 and 0.28 for seeds 0 and 1, against 0.28 with 0.5 for seed 0; README).
+# (Block Pull at 20K: 0.48 and 0.28 for seeds 0 and 1, against 0.28 with 0.5 for seed 0; docs/results.md).
 SAC_PRESETS["cpu-small-state"] = dataclasses.replace(
     SAC_PRESETS["cpu-small"],
     algorithm=dataclasses.replace(
@@ -235,7 +225,7 @@ _gasv2 = LearnerConfig(
 )
 GASV2_PRESETS: dict[str, LearnerConfig] = {
     "paper": _gasv2,
-    # cpu-small: two CPU cores (16K env steps in about 40 minutes; README, "The learner (GASv2)"): the
+    # cpu-small: two CPU cores (16K env steps in about 40 minutes; docs/learners.md, "GASv2"): the
     # world model's cpu-small widths (gasv2/config.py), 16 windows per update instead of 100, training
     # from 500 env steps, and the demo-aware sampling of the cpu-small SAC recipe (half of every batch
     # from the demos, their copies and online successes); everything else as paper.

@@ -1,35 +1,7 @@
 """`mea learner`: train recurrent SAC (Equi-RSAC) or GASv2 (the gasv2 presets: a DreamerV2 world
 model with an imagination actor) from replay and broadcast versioned weights.
 
-The training (replay, sample-to-insert limiter, the algorithm's updates, the replay gate's arithmetic) is the
-pure ``services.learner.core.trainer``; this shell wires it to the bus, the weights server, the
-checkpoints (``services.learner.checkpoint``) and the metrics (``services.learner.metrics``).
-
-Threads
-    * ingest: drains ``EPISODES_AUGMENTED`` (raw episodes pass through the augmenter, then their
-      copies) into the sequence replay, and publishes the replay gate (``ReplayGate`` on
-      ``learner/gate``: how many env steps the learner takes before producers should wait; it asks,
-      it never drops), and ``EpisodeAck`` on ``learner/acks`` (the raw episode ids taken, so actors
-      publish again only what never arrived; an id is stored once). It never waits on training, so
-      the Zenoh receive thread is never held up.
-    * train (main thread): while the limiter allows, samples a batch, runs one update, and
-      every ``publish_every`` updates announces a new weights version; otherwise it waits (counted in
-      ``mea_learner_wait_seconds_total``).
-
-Weights and checkpoints
-    Version 0 (random initial weights) is published at start so that actors can act at once. Every
-    ``checkpoint_minutes`` (and every ``checkpoint_every`` updates if set) and on SIGTERM the whole
-    state is checkpointed atomically (the newest ``keep_checkpoints`` kept, within
-    ``checkpoint_max_bytes`` if set); ``--resume`` continues from the newest readable one and keeps
-    the run id: one version lineage. Each version is recorded as announced
-    (``checkpoints/published.json``) before it goes out, so a learner killed after its checkpoint
-    resumes past every version it announced since: no version number is ever announced twice. On
-    SIGTERM a last version goes out only if the weights changed since the newest one.
-
-Bad input
-    An episode the replay refuses (no policy images, wrong shape, too long) is logged, counted in
-    ``mea_learner_rejected_episodes_total{reason}`` and skipped; the learner keeps running.
-"""
+Design notes: docs/architecture-notes.md, services/learner/main.py."""
 
 from __future__ import annotations
 

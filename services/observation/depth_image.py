@@ -1,51 +1,6 @@
 """The `equirsac` variant's policy images: the rendered top-down depth image, quantised and rotated.
 
-The public Equi-RSAC observation is a gripper-centred, top-down, (nearly) orthographic depth image
-rendered by the simulator (``services.tasks.camera.render_gripper_depth``); the actor records
-it as ``Episode.images`` (T+1, 1, N, N) float16. This module turns it into the uint8 policy stack the
-learner's replay stores, exactly like the voxel path does (``projection.quantized_observations``),
-and applies the public code's isometric augmentation to it: one continuous rotation per copy.
-Pure numpy + OpenCV: no simulator, transport or metrics.
-
-Values and quantisation (``DepthImageSpec``)
-    A rendered pixel is the depth (m) below a horizontal plane 6 cm above the gripper pivot, clipped
-    to ``[0, far]`` with ``far = 0.5`` (``render_gripper_depth``'s default): 0 is the plane itself
-    (the painted fingers are 0, the public convention), ``far`` is "nothing seen" (the tiny renderer
-    does not draw the floor, so the background is the clip value). The pivot stays at most ~0.43 m
-    above the floor (workspace tip height <= 0.25 m + ~0.18 m pivot-to-tip), so every object, down to
-    the floor, is at depth < 0.49 m: the range ``[0, far]`` holds the whole workspace. Codes are
-    linear, ``q = round(clip(d, 0, far) / far * 255)``, step ``far / 255`` ~ 1.96 mm, error <= half a
-    step. No code is reserved: unlike the voxel image (0 = empty column) every pixel of a rendered
-    image has a depth, and both 0 and 255 are real values. Because the map is affine with no
-    reserved value, interpolating codes is the same as interpolating depths (see below).
-
-Channels
-    ``policy_images`` stacks channel 0 = depth codes, channel 1 = jaw code ``round(clip(jaw, 0, 1) *
-    255)`` tiled, in the one policy image format (``services.observation.image_format``) that the
-    voxel path uses too, so the learner's replay (which stores channel 1 as one byte per image)
-    accepts either path.
-
-Rotation (``rotate_images``), the public augmentation without its pitfall P3
-    The public code rotates channel 0 with ``scipy.ndimage.affine_transform(order=1, mode='nearest')``
-    about pixel (42, 42); here the pivot is the true image centre ``c = (N - 1) / 2`` (41.5 for 84
-    px: the gripper sits on the corner between the four centre pixels, as in the voxel projection),
-    with bilinear interpolation and edge-replicated borders (``cv2.warpAffine``, INTER_LINEAR,
-    BORDER_REPLICATE). Direction: image rows follow world +x and columns +y, and a world rotation by
-    +phi about the vertical, ``(x, y) -> (x cos phi - y sin phi, x sin phi + y cos phi)``, is the
-    image map ``out[i', j'] = in[i, j]`` with
-
-        i - c =  cos(phi) (i' - c) + sin(phi) (j' - c)
-        j - c = -sin(phi) (i' - c) + cos(phi) (j' - c)
-
-    which at phi = +90 degrees is ``np.rot90(image, k=1)`` (pixel (i, j) goes to (N - 1 - j, i)), the
-    convention the simulator test ``tests/unit/test_rotation_convention.py`` pins for both the voxel
-    and the rendered image. The (dx, dy) actions of a copy are rotated by the same phi
-    (``isometric.rotate_actions``). The warp runs on the codes as float32 and rounds once at the end:
-    since codes are affine in depth with no reserved value, this is exactly "dequantise, interpolate
-    the depths, quantise again" without the float round trip, and float32 keeps OpenCV's 8-bit
-    fixed-point weights out of it. OpenCV snaps source coordinates to 1/32 px; at multiples of 90 degrees they are integers, so
-    the result is ``np.rot90`` bit for bit. The jaw channel is left unchanged (rotation-invariant).
-"""
+Design notes: docs/architecture-notes.md, services/observation/depth_image.py."""
 
 from __future__ import annotations
 
@@ -72,7 +27,7 @@ class DepthImageSpec:
     """N: pixels per image side (the public Equi-RSAC image, 0.4 m wide)."""
     far: float = 0.5
     """Depth (m) of code 255: the renderer's clip depth (``render_gripper_depth(far=0.5)``), i.e.
-    "nothing seen"; depths are clipped to [0, far]. Covers the whole workspace (module docstring)."""
+    "nothing seen"; depths are clipped to [0, far]. Covers the whole workspace (docs/architecture-notes.md)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.size, bool) or not isinstance(self.size, int | np.integer) or self.size < 2:
@@ -139,7 +94,7 @@ def rotation_matrix(phi: float, size: int) -> np.ndarray:
         src_col = cos(phi) col' - sin(phi) row' + c (1 - cos(phi) + sin(phi))
         src_row = sin(phi) col' + cos(phi) row' + c (1 - cos(phi) - sin(phi))
 
-    (the module docstring's equations with rows = i, columns = j).
+    (docs/architecture-notes.md's equations with rows = i, columns = j).
     """
     c, s = math.cos(phi), math.sin(phi)
     ctr = (size - 1) / 2.0

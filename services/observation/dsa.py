@@ -1,75 +1,6 @@
 """Surgical Grasp Any observation: occupancy voxels -> per-object orthographic image (``dsa_occup2``).
 
-The surgical domain's policy image (issue #14; reference ``gym_ras`` wrappers Occup -> DSA -> ObsImage
--> ObsVector, see ``shared/reference/tasks-and-baselines.md`` section 5). The simulator renders
-masked point clouds of the instrument ("gripper") and the object; everything after that is here,
-pure numpy, so the environment, its MEA copies (gripper cloud moved, object fixed) and the tests all
-run the same code. Domain-randomisation noise lives in ``dsa_noise`` and is re-exported here.
-
-Occupancy frame (``to_occupancy``)
-    ``q = R ((p - origin) * scale)``: a simulator point ``p`` (m) becomes occupancy units, with
-    ``origin`` at the cube centre and ``R`` an optional 3x3 camera-pose-noise rotation about the
-    centre (``camera_pose_noise``). Axes are the world's: x, y horizontal, **z is height (larger =
-    higher)**. The cube is ``[-0.5, 0.5]^3``; with ``scale = 1`` it is 1 m of the 5x-scaled simulator
-    (20 cm real), like the reference's ``pc_range`` of +-0.1 x SCALING. The reference instead
-    back-projects camera pixels and applies its fixed camera offset (z -1.0, rx 160, rz -90) to land
-    in such a frame; our simulator hands over world points, so only the translation and scale remain.
-
-Voxels (``voxelize``)
-    ``G = grid`` voxels per side: point ``q`` lies in voxel ``(i, j, k) = floor((q + 0.5) G)``, kept
-    iff ``0 <= (q + 0.5) G < G`` on every axis (float64; NaN / inf points drop out). The occupied set
-    is the unique indices; voxel centres are ``(idx + 0.5) / G - 0.5``. One voxelisation feeds the
-    P-controller's centroid and the image, so they never disagree about a boundary point. (The general
-    tasks' ``projection.depth_indices`` fuses voxelisation and projection in a gripper-centric grid
-    with depth counted downward; it cannot give the voxel set, hence this separate indexer.)
-
-Depth and projection (``dsa_image``)
-    The view is from above, orthographic along occupancy z: each column ``(i, j)`` shows its
-    **top-most** occupied voxel ``k_top`` (the paper's Sec. VI ``min z`` counts z from the viewer;
-    with z as height the voxel nearest the viewer is the top-most one, the same image). "Depth" is the
-    distance of that voxel's centre below the cube's top face, ``d = (G - k_top - 0.5) / G``
-    (larger = farther from the viewer = lower), which keeps the reference's semantics of depth
-    (distance from the camera) and of its window. The window is ``[c - w/2, c + w/2]`` with
-    ``c = m + depth_offset``, ``w = window`` and ``m`` the median depth of the gripper's columns (all
-    of them, in the whole cube, like the reference's median over the instrument's visible pixels).
-    With the defaults it spans 0.05 above to 0.25 below the gripper's median surface, where the
-    object is. Codes: ``1 + round(254 (c + w/2 - d) / w)`` clipped to ``1 .. 255`` (255 = top of
-    the window, nearest the viewer; out-of-window voxels saturate, as the reference clips; an
-    occupied column never reads 0). ``round`` is half-up and the arithmetic is exact in half-voxel
-    steps, so moving both clouds by whole voxels along z gives the same codes.
-
-Channels of the (3, image, image) uint8 image
-    * 0: gripper depth codes (0 = no gripper voxel in the column);
-    * 1: object depth codes, the object's own projection (the gripper does not occlude it);
-    * 2: mask ids, ``object_code`` where the object has a voxel, ``gripper_code`` where the gripper
-      has one (gripper wins), 0 elsewhere; its last row carries the state codes (below).
-    Per-object channels instead of the reference's single depth channel are what "per-object
-    orthographic projection" in issue #14 asks for: an object under the jaws stays visible.
-
-Crop and resize
-    Side ``S = round(zoom * G)`` voxels (60 by default, the reference's 0.3-wide zoom box), centred on
-    the gripper voxel centroid's (x, y): the window starts at voxel ``x0 = round_half_up(cx - S/2)``
-    with ``cx`` the centroid in voxel-edge units (exact integer arithmetic, so a whole-voxel move of
-    the gripper moves the crop by exactly that many voxels). Unlike the reference, which clamps the
-    box inside the image, the crop may leave the cube and is padded with empty columns, so the gripper
-    always stays centred. Resize ``S -> image`` is nearest, centre-aligned: pixel ``r`` shows crop
-    voxel ``floor((r + 0.5) S / image)``, so codes stay exact and, when ``image / S`` is an integer
-    ``m``, every voxel is an ``m x m`` block. Orientation as in ``projection``: rows follow +x,
-    columns +y.
-
-State row (``STATE_ROW = -1``: the last row of channel 2)
-    Split into three column blocks ``[0, W//3)``, ``[W//3, 2W//3)``, ``[2W//3, W)``: gripper_state
-    (0 open -> 0, 1 closed -> 255), fsm_state (0 .. 5, code ``51 * s``, index into ``FSM_STATES``),
-    controller_state (0 policy -> 0, 1 P-controller -> 255). Codes span 0..255 like the reference's
-    ObsVector (which scales each value to [-1, 1] and then to 0..255 in image rows), so a CNN sees
-    them; each block is constant, and ``decode_state_rows`` checks that and inverts exactly. The mask
-    ids of that row are overwritten (one row given up; the reference's ObsVector overwrites rows too);
-    the depth channels keep theirs.
-
-Empty clouds: no gripper voxel -> both depth channels and the mask are 0 (there is no crop centre
-or window; the reference returns a blank image too); no object voxel -> channel 1 is 0. The state
-row is written in every case.
-"""
+Design notes: docs/architecture-notes.md, services/observation/dsa.py."""
 
 from __future__ import annotations
 
@@ -120,7 +51,7 @@ _EMPTY = -1
 
 @dataclass(frozen=True)
 class DsaSpec:
-    """Occupancy grid, crop and codes of the surgical observation (see the module docstring)."""
+    """Occupancy grid, crop and codes of the surgical observation (docs/architecture-notes.md)."""
 
     grid: int = 200
     """Occupancy voxels per side over the cube [-0.5, 0.5]^3 (occupancy units)."""
@@ -265,7 +196,7 @@ def dsa_image(
     """Gripper and object clouds (N, 3) in sim-world metres -> (3, image, image) uint8 observation.
 
     Channels: 0 gripper depth, 1 object depth (top-most voxel per column, window codes 1 .. 255,
-    0 empty), 2 mask ids with the state row; cropped around the gripper (module docstring).
+    0 empty), 2 mask ids with the state row; cropped around the gripper (docs/architecture-notes.md).
     """
     g = voxelize(to_occupancy(gripper_world, spec, cam_rotation), spec)
     o = voxelize(to_occupancy(object_world, spec, cam_rotation), spec)

@@ -1,33 +1,6 @@
 """Domain randomisation of the surgical observation: image noise and camera pose noise.
 
-Reference: ``gym_ras`` ``domain_random_enhance`` (``shared/reference/tasks-and-baselines.md`` section 5):
-image cutout amount [0.8, 1.0], uniform noise 0.005, Gaussian blur kernel 3 sigma 0.3, and the
-optional ``cam_pose_noise`` on Occup (+-0.01 m z, +-3 / +-3 / +-1 degree rotation). The reference
-applies the image noise to the rendered depth and masks *before* back-projection; here it is applied
-to the final (3, H, W) uint8 image (``dsa.dsa_image``), to the depth channels 0 and 1 only, so the
-mask ids and the state row of channel 2 stay bit-exact (the FSM and controller flags are not
-observations to be corrupted). Pure numpy; every random draw comes from the caller's Generator.
-
-``image_noise`` steps, in the reference's order (blur, uniform noise, cutout), on each depth channel:
-
-1. Blur: a ``blur_kernel`` x ``blur_kernel`` Gaussian (``exp(-x^2 / (2 sigma^2))`` per axis,
-   normalised, like ``cv2.getGaussianKernel``) averaged over the *occupied* pixels only
-   (``conv(code * occ) / conv(occ)``). Code 0 means "empty column", not "depth 0": blurring it in
-   would invent far surfaces at every object edge, which the reference (whose depth image has a
-   background everywhere) never sees. Empty pixels stay empty.
-2. Uniform noise: ``U(-uniform/2, +uniform/2)`` of the full code range (255), as the reference's
-   ``uniform_noise_amount * range / 2`` on depth normalised to [0, 1]; then round half up and clip
-   occupied pixels to 1 .. 255 (they never become empty through noise).
-3. Cutout: "cutout amount [lo, hi]" is, as in the reference's ``_cutout_protocol``, an *acceptance
-   band*, not a drawn fraction: draw 2..8 discs (radius U(0.01, 0.2) x side / 2), 3..10 rotated
-   rectangles (sides U(0.1, 0.2) x side) and 3..10 lines (length U(0.9, 1) x side, width
-   U(0.5, 1) x 1% of side, at least one pixel as a rasterised outline is), all at uniform centres
-   and angles; accept them only if every depth channel with occupied pixels keeps a fraction in
-   [lo, hi] of them, else draw again, at most 3 times (then no cutout). Accepted shapes empty the
-   depth pixels (code 0) in both channels. Differences: the reference cuts the masks (which removes
-   points before voxelisation) and keeps the last accepted of all 3 draws; we stop at the first.
-   ``cutout=(1.0, 1.0)`` (or lo >= 1, the reference's switch) disables it.
-"""
+Design notes: docs/architecture-notes.md, services/observation/dsa_noise.py."""
 
 from __future__ import annotations
 

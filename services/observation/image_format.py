@@ -1,26 +1,6 @@
 """The policy image's uint8 format: one definition for every writer and reader.
 
-Writers (the voxel projection, the rendered depth image) and readers (the learner's replay, its
-batches and the policy runtime) all go through this module, so the layout and the scaling cannot
-drift apart between what actors see and what the learner trains on. Pure numpy.
-
-Layout
-    ``(..., C, H, W)`` uint8 with ``C = N_CHANNELS = 2``:
-
-    * channel ``DEPTH_CHANNEL`` (0): depth codes; their depth scale belongs to the image kind
-      (``projection.quantize_depth``: 0 = empty column; ``depth_image.depth_codes``: linear, no
-      reserved code);
-    * channel ``JAW_CHANNEL`` (1): the jaw opening's code ``round(clip(jaw, 0, 1) * 255)``, the same
-      over the whole image (``CONSTANT_CHANNELS``).
-
-Storage
-    A channel constant over the image is kept as one code per image (``split_constant``) and tiled
-    back over (H, W) when the full stack is needed (``tile_constant``).
-
-Network input
-    ``decode``: codes as float32 times ``float32(INPUT_SCALE)`` (1/255), in [0, 1]. The torch side
-    (``services.learner.core.tensors.images_from_codes``) multiplies by the same constant, bit for bit.
-"""
+Design notes: docs/architecture-notes.md, services/observation/image_format.py."""
 
 from __future__ import annotations
 

@@ -1,50 +1,6 @@
 """Voxel-based orthogonal projection of gripper-centric point clouds (MEA paper, Sec. VI).
 
-Pure numpy: the same functions turn raw and augmented observations into policy images.
-
-Frame
-    Points are in the gripper-centric frame: origin at the centroid of the gripper's points, axes
-    aligned with the world (x, y horizontal, z up).
-
-Grid
-    A box of ``N x N x ceil(depth / v)`` voxels of edge ``v`` (``N = spec.size``, ``v = spec.voxel``)
-    sits around the gripper. With ``h = N v / 2``, a point ``p = (x, y, z)`` falls in the voxel
-
-        i = floor((x + h) / v)          (image row,    0 <= i < N;  = floor(x / v + N / 2))
-        j = floor((y + h) / v)          (image column, 0 <= j < N)
-        k = floor((z_top - z) / v)      (depth index counted DOWNWARD from the top plane, k >= 0)
-
-    and is kept iff ``0 <= (x + h) / v < N``, ``0 <= (y + h) / v < N`` and
-    ``0 <= (z_top - z) / v < depth / v``: x, y in ``[-h, h)`` and the depth below the top plane,
-    ``z_top - z``, in ``[0, depth)`` (every interval is closed on the side its index counts from, so
-    voxel k holds the depths ``[k v, (k + 1) v)``). Points outside the grid, and NaN / inf points,
-    are ignored. The arithmetic is float64 whatever the input dtype, exactly as written above.
-
-Projection
-    A virtual orthographic camera on the plane ``z = z_top`` looks straight down. The image is
-
-        I[i, j] = (min_k + 0.5) * v     over the occupied voxels (i, j, k) of column (i, j)
-        I[i, j] = 0                     if column (i, j) is empty
-
-    i.e. the depth below the top plane of the centre of the topmost occupied voxel (a height map
-    seen from above). Occupied values are strictly positive (>= v / 2) and below ``depth + v / 2``,
-    so 0 unambiguously means empty.
-
-Image orientation convention (downstream code, e.g. the augmenter's rotations, relies on it)
-    * row index increases with +x (world x), column index increases with +y;
-    * pixel ``i`` covers ``x in [(i - N/2) v, (i - N/2 + 1) v)``; for even ``N`` the gripper origin
-      sits on the corner shared by pixels ``N/2 - 1`` and ``N/2`` (between pixel centres);
-    * this matches the public Equi-RSAC top-down camera (up-vector ``[-1, 0, 0]``: rows = +x,
-      columns = +y);
-    * consequence: rotating the cloud by +90 degrees about z, ``(x, y) -> (-y, x)``, rotates the image
-      by ``np.rot90(image, k=1)`` (axes (0, 1)), exactly, pixel for pixel, when ``N`` is even: pixel
-      ``(i, j)`` goes to ``(N - 1 - j, i)``. A rotation by ``r * 90`` degrees is ``np.rot90(image, k=r)``.
-
-Policy input
-    ``observation_channels`` stacks channel 0 = depth image, channel 1 = jaw opening tiled.
-    ``quantize`` / ``dequantize`` store that stack as uint8 for a compact replay buffer, in the one
-    policy image format (``services.observation.image_format``: channel layout, jaw codes).
-"""
+Design notes: docs/architecture-notes.md, services/observation/projection.py."""
 
 from __future__ import annotations
 
@@ -93,11 +49,11 @@ class ProjectionSpec:
     size: int = 84
     """N: pixels per image side (= voxels per grid side in x and y)."""
     voxel: float = 0.4 / 84
-    """v: voxel edge (m); 84 px cover 0.4 m like the reference Equi-RSAC camera."""
+    """v: voxel edge (m)."""
     z_top: float = 0.1
-    """Height (m) above the gripper origin of the grid's top plane (the virtual camera plane)."""
+    """Height (m) of the grid's top plane above the gripper."""
     depth: float = 0.6
-    """Grid depth (m) below ``z_top``: points whose depth ``z_top - z`` is outside ``[0, depth)`` are ignored."""
+    """Grid depth (m) below z_top; deeper points are ignored."""
 
     def __post_init__(self) -> None:
         if isinstance(self.size, bool) or not isinstance(self.size, int | np.integer) or self.size < 2:
@@ -161,7 +117,7 @@ def project_batch(
     """Project T clouds at once: (T, M, 3) -> (T, N, N) float32.
 
     ``I[t, i, j] = (min k + 0.5) v`` over the valid points of frame t in column (i, j), 0 when the
-    column is empty (see the module docstring for i, j, k). ``valid`` (T, M) bool, optional, drops
+    column is empty (see docs/architecture-notes.md for i, j, k). ``valid`` (T, M) bool, optional, drops
     points (e.g. filler points of unseen segments); NaN / inf and out-of-grid points are always
     dropped.
 

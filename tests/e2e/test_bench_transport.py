@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from services.bench.transport import TransportBenchConfig, run
+from mea_tools.bench.transport import TransportBenchConfig, run
 
 
 def _reject_constant(name: str) -> float:

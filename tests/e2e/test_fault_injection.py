@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
+from mea_tools.bench.system import connect_to_run
 from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.topics import (
     EPISODES_AUGMENTED,
@@ -32,7 +33,6 @@ from proto.topics import (
     WEIGHTS_ANNOUNCE,
     WEIGHTS_LATEST,
 )
-from services.bench.system import connect_to_run
 from services.learner import checkpoint
 from tests.helpers import build_weights, find_free_port, find_free_port_base
 from tests.helpers.learner import learner_episode

@@ -17,7 +17,7 @@ import pytest
 import zenoh
 from cryptography.hazmat.primitives import serialization
 
-from services.bench.system import stop_run
+from mea_tools.bench.system import stop_run
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig, load_zenoh_file
 from services.common.bus.zenoh_derive import client_config, loopback
 from tests.e2e.test_zenoh_security import _CA, _write

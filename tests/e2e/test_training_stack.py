@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from mea_tools.bench.system import connect_to_run
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW, EVAL_REPORTS, STATUS, WEIGHTS_ANNOUNCE
-from services.bench.system import connect_to_run
 from services.common.mcap_io import read_recording
 from services.learner import checkpoint
 

@@ -13,12 +13,12 @@ import threading
 
 import numpy as np
 
+from mea_tools.bench.harness import free_port
 from proto.actions import ACTION_DIM
 from proto.codec import Message
 from proto.episode import Episode
 from proto.msgpack_wire import pack
 from proto.weights import WeightsBlob
-from services.bench.harness import free_port
 
 SEGMENTS = ("gripper", "object_0", "object_1")
 """Segment names of every factory-made episode: the gripper, then two objects."""

@@ -18,11 +18,11 @@ from proto.topics import EPISODES_RAW
 from proto.weights import WeightsBlob
 from services.actor.config import ActorConfig
 from services.actor.main import run
-from services.actor.rollout import policy_image, policy_input
 from services.augmenter.core.pipeline import AugmentSettings, augment_episode
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsServer
+from services.episodes.rollout import policy_image, policy_input
 from services.learner.core.networks import PRESETS, build_actor
 from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.tasks.env import Observation

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from services.bench.serve import (
+from mea_tools.bench.serve import (
     SECTION_ACT,
     SECTION_LOCAL,
     SECTION_MACHINE,

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from services.actor.config import ActorConfig
-from services.actor.rollout import Actor
+from services.actor.rollout import RolloutActor
 from services.learner.core.gasv2.agent import GasV2Agent
 from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
 from services.learner.core.gasv2.config import PRESETS
@@ -21,7 +21,7 @@ pytestmark = pytest.mark.integration
 @pytest.mark.slow
 def test_world_model_losses_fall_on_recorded_surgical_episodes():
     torch.set_num_threads(1)
-    actor = Actor(ActorConfig(task="surgical_grasp_any"), "actor-0")
+    actor = RolloutActor(ActorConfig(task="surgical_grasp_any"), "actor-0")
     try:
         episodes = [actor.expert_episode(k).finish(f"demo-{k}") for k in range(3)]
     finally:

@@ -10,9 +10,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from mea_tools.bench.learner import random_dsa_episode
 from proto.discrete_actions import NAMES, to_vector
 from proto.topics import EPISODES_AUGMENTED, STATUS, WEIGHTS_ANNOUNCE
-from services.bench.learner import random_dsa_episode
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsClient

@@ -92,9 +92,9 @@ def test_a_runs_policy_renders_one_frame_per_observation(tmp_path, capsys, blob)
 
 def _demo_episode():
     from services.actor.config import ActorConfig
-    from services.actor.rollout import Actor
+    from services.actor.rollout import RolloutActor
 
-    actor = Actor(ActorConfig(task="block_pull", demos=1), "actor-0")
+    actor = RolloutActor(ActorConfig(task="block_pull", demos=1), "actor-0")
     try:
         b = actor.expert_episode(0)
     finally:

@@ -7,17 +7,17 @@ import time
 from types import SimpleNamespace
 
 from services.actor.config import ActorConfig
-from services.actor.main import Delivery, _metrics
+from services.actor.main import EpisodeSender, _metrics
 from services.common.bus.inproc import Hub, InProcBus
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown
 from tests.helpers import build_episode
 
 
-def _delivery(hub: Hub, limit: int = 3) -> tuple[Delivery, SimpleNamespace]:
+def _delivery(hub: Hub, limit: int = 3) -> tuple[EpisodeSender, SimpleNamespace]:
     ctx = SimpleNamespace(bus=InProcBus(hub), instance="actor-0", shutdown=Shutdown())
     mx = _metrics(SimpleNamespace(metrics=ServiceMetrics("actor", "actor-0")))
-    return Delivery(ctx, ActorConfig(unacked_limit=limit), mx), ctx
+    return EpisodeSender(ctx, ActorConfig(unacked_limit=limit), mx), ctx
 
 
 def test_without_a_learner_ever_the_oldest_go_and_are_counted():

@@ -6,13 +6,15 @@ from __future__ import annotations
 import pytest
 
 from services.actor.config import ActorConfig
-from services.actor.rollout import Actor
+from services.actor.rollout import RolloutActor
 
 
 @pytest.mark.parametrize("random_steps", [0, 1, 60])
 @pytest.mark.slow
 def test_random_episodes_come_first_until_the_prefill_is_done(random_steps):
-    actor = Actor(ActorConfig(task="block_pull", policy="expert", random_steps=random_steps), "actor-0")
+    actor = RolloutActor(
+        ActorConfig(task="block_pull", policy="expert", random_steps=random_steps), "actor-0"
+    )
     try:
         kinds, steps = [], 0
         for k in range(4):

@@ -16,6 +16,7 @@ from services.learner.core.registry import ALGORITHMS, lookup
 pytestmark = pytest.mark.unit
 
 SERVICES = Path(__file__).resolve().parents[2] / "services"
+TOOLS = Path(__file__).resolve().parents[2] / "mea_tools"
 REGISTRY = SERVICES / "learner" / "core" / "registry.py"
 COMPARISONS = (ast.Eq, ast.NotEq, ast.In, ast.NotIn)
 
@@ -47,6 +48,7 @@ def algorithm_comparisons(root: Path, skip: Path | None = REGISTRY) -> list[str]
 
 def test_no_module_compares_with_an_algorithm_name_outside_the_registry():
     assert algorithm_comparisons(SERVICES) == []
+    assert algorithm_comparisons(TOOLS) == []
 
 
 @pytest.mark.parametrize(

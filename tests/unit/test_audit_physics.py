@@ -12,13 +12,13 @@ import dataclasses
 import numpy as np
 import pytest
 
+from mea_tools.audit.general import record_demos
 from services.augmenter.audit_physics import audit_episode, identity_replay
 from services.augmenter.audit_placement import NotSimulableError, place, plan_placement, yaw_branch
 from services.augmenter.core.audit_metrics import NON_TRIVIAL, AuditTolerance
 from services.augmenter.core.isometric import isometric_copy, rotation_fits
 from services.augmenter.core.mea import MeaSettings, augment
 from services.augmenter.core.pipeline import episode_seed, isometric_copies
-from services.bench.audit import record_demos
 
 pytestmark = pytest.mark.unit
 
@@ -26,9 +26,9 @@ pytestmark = pytest.mark.unit
 @pytest.fixture(scope="module")
 def pick():
     from services.actor.config import ActorConfig
-    from services.actor.rollout import Actor
+    from services.actor.rollout import RolloutActor
 
-    actor = Actor(ActorConfig(task="block_pick", policy="expert", expert_style="direct"), "test-audit")
+    actor = RolloutActor(ActorConfig(task="block_pick", policy="expert", expert_style="direct"), "test-audit")
     demos, _ = record_demos(actor, 1, 4)
     assert demos and demos[0].terminated[-1]
     yield actor.env, demos[0]

@@ -29,8 +29,8 @@ def env():
 
 @pytest.fixture(scope="module")
 def demo(env) -> Episode:
-    from services.actor.episodes import EpisodeBuilder
-    from services.actor.rollout import run_episode
+    from services.episodes.builder import EpisodeBuilder
+    from services.episodes.rollout import run_episode
     from services.tasks.surgical.oracle import Oracle
 
     b = EpisodeBuilder(task="surgical_grasp_any", seed=7, actor_id="t", policy_version=-1,

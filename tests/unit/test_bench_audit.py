@@ -1,4 +1,4 @@
-"""`mea audit` (services.bench.audit): one JSON object with every kind the augmenter stores, each
+"""`mea audit` (mea_tools.audit): one JSON object with every kind the augmenter stores, each
 copy either simulated or counted as not simulable."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from services.bench.audit import main
+from mea_tools.audit.cli import main
 
 pytestmark = pytest.mark.unit
 

@@ -9,7 +9,7 @@ import socket
 import numpy as np
 import pytest
 
-from services.bench import harness
+from mea_tools.bench import harness
 
 pytestmark = pytest.mark.unit
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.bench.learner import LearnerBenchConfig, bench_updates, same_threads_rows
+from mea_tools.bench.learner import LearnerBenchConfig, bench_updates, same_threads_rows
 
 PAPER = {"variant": "paper:c4", "s/update (median)": 2.0}
 

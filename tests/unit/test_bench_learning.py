@@ -10,8 +10,8 @@ import subprocess
 
 import pytest
 
-from services.bench import learning
-from services.bench.learning import LearningBenchConfig, run, run_args, settings
+from mea_tools.bench import learning
+from mea_tools.bench.learning import LearningBenchConfig, run, run_args, settings
 from services.common import config
 from services.evaluator.history import append_history
 from services.launcher import PRESETS as RUN_PRESETS

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from services.bench.soak import Series, growth_rows, rss_bytes
+from mea_tools.bench.soak import Series, growth_rows, rss_bytes
 
 pytestmark = pytest.mark.unit
 MB = 1_000_000

@@ -1,4 +1,4 @@
-"""services.bench.stats on fixed inputs: IQM by hand, intervals that contain their estimate and shrink
+"""mea_tools.bench.stats on fixed inputs: IQM by hand, intervals that contain their estimate and shrink
 with more runs, probability of improvement, the "within noise" verdict, reproducible bootstrap."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.bench import stats
-from services.bench.stats import Bootstrap, Interval
+from mea_tools.bench import stats
+from mea_tools.bench.stats import Bootstrap, Interval
 
 pytestmark = pytest.mark.unit
 

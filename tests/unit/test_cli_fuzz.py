@@ -25,7 +25,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from services.bench.cli import BENCHES
+from mea_tools.bench.cli import BENCHES
 from services.cli import COMMANDS, main
 from services.common import config
 from services.run_config import RunConfig
@@ -46,7 +46,7 @@ CONFIGS = {
     "serve": "services.inference.config:ServeConfig",
     "robot": "services.inference.robot:RobotConfig",
     "operator": "services.inference.operator:OperatorConfig",
-    "audit": "services.bench.audit:AuditConfig",
+    "audit": "mea_tools.audit.config:AuditConfig",
     "demos": "services.actor.demos:DemosConfig",
 }
 STARTS = {
@@ -59,7 +59,7 @@ STARTS = {
     "serve": ["services.inference.main:run"],
     "robot": ["services.inference.robot:run", "services.inference.robot:SimRobot"],
     "operator": ["services.inference.operator:run"],
-    "audit": ["services.bench.audit:run_audit"],
+    "audit": ["mea_tools.audit.cli:run_audit"],
     "demos": ["services.actor.demos:record"],
     "bench": [f"{module}:run" for module, _, _ in BENCHES.values()],
     "play": ["services.play:write_video"],  # every check ran: the video was about to be written

@@ -94,6 +94,25 @@ def test_bad_input_is_one_line_naming_the_option_exit_2_and_nothing_on_disk_chan
     assert snapshot(here) == before
 
 
+@pytest.mark.parametrize("offset", [0, 1])  # the launcher's own port, the learner's (base + 1)
+def test_a_taken_metrics_port_is_one_line_before_anything_starts(offset, here, capsys):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        base = port - offset
+        before = snapshot(here)
+        code, out, err = run_cli(["run", "--metrics-port", str(base), "--run-dir", "fresh"], capsys)
+    who = "the launcher" if offset == 0 else "learner-0"
+    assert code == 2, (out, err)
+    assert err.splitlines() == [
+        f"mea run: --metrics-port {base}: port {port} ({who}'s /metrics) on 127.0.0.1 is unavailable "
+        "(Address already in use; another run on this host?): give this run another base, e.g. "
+        "--metrics-port 9200, or 0 for none"
+    ], err
+    assert snapshot(here) == before
+
+
 def test_a_refused_resume_leaves_the_run_as_it_was(here, capsys):
     saved = (here / "run" / "config.json").read_text()
     for argv in (["--task", "block_pull"], ["--learner-preset", "paper"], ["--env-steps", "-5"], ["--actors", "x"],

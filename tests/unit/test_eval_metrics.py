@@ -5,20 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.evaluator.core.metrics import (
-    H_MAX,
-    EpisodeResult,
+from services.episodes.scores import H_MAX, EpisodeResult, episode_result, grasp_score, summarize
+from services.evaluator.core.curves import (
     align,
     common_grid,
     curve,
-    episode_result,
-    grasp_score,
     improvement_timestep,
     mean_std,
     run_improvement_timestep,
     run_success_auc,
     success_auc,
-    summarize,
 )
 
 pytestmark = pytest.mark.unit

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from proto.episode import Episode
-from services.actor.episodes import EpisodeBuilder
 from services.augmenter.core.mea import MeaSettings, phase_split
+from services.episodes.builder import EpisodeBuilder
 from services.tasks import GENERAL_TASKS, make_env
 from services.tasks.experts import LZ, SAFE_Z
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
+from mea_tools.bench.learner import APPROACH_STEPS, random_dsa_episode
 from proto.actions import JAW
 from proto.discrete_actions import NAMES, TOGGLE, to_vector
 from proto.weights import WeightsBlob
-from services.bench.learner import APPROACH_STEPS, random_dsa_episode
 from services.learner.core.gasv2.action_features import DISCRETE_FEATURES, features
 from services.learner.core.gasv2.agent import GasV2Agent
 from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch

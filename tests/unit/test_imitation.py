@@ -11,10 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from services.actor.config import ActorConfig
-from services.actor.rollout import Actor, policy_input
-from services.augmenter.core.pipeline import augment_episode, with_images
-from services.bench.imitation import (
+from mea_tools.bench.imitation import (
     ImitationBenchConfig,
     clone,
     clone_blob,
@@ -22,7 +19,11 @@ from services.bench.imitation import (
     record_demos,
     run_config,
 )
+from services.actor.config import ActorConfig
+from services.actor.rollout import RolloutActor
+from services.augmenter.core.pipeline import augment_episode, with_images
 from services.common.config import ServiceConfig
+from services.episodes.rollout import policy_input
 from services.evaluator.config import EvaluatorConfig
 from services.learner.core.batch import to_batch
 from services.learner.core.policy import PolicyRuntime
@@ -96,7 +97,7 @@ def test_cloning_two_demos_fits_them_and_the_clone_replays_their_actions_on_thei
 def test_batches_drawn_with_demo_fraction_hold_the_demos_and_the_bc_term_sees_only_them(setting):
     rc, learner, demos, _, _ = setting
     settings = augmenter_config(rc, ServiceConfig()).augment
-    actor = Actor(ActorConfig(task=rc.task, policy="random", seed_base=500), "actor-0")
+    actor = RolloutActor(ActorConfig(task=rc.task, policy="random", seed_base=500), "actor-0")
     randoms = []
     for _ in range(3):
         b = actor.random_episode()

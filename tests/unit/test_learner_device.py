@@ -408,7 +408,7 @@ def test_cuda_updates_between_metric_reads_never_synchronise_in_the_loops_own_co
 @pytest.mark.cuda
 @pytest.mark.skipif(not CUDA, reason=f"CUDA is absent here (torch {torch.__version__})")
 def test_the_update_benchmark_times_cuda_with_percentiles():
-    from services.bench.learner import LearnerBenchConfig, bench_updates
+    from mea_tools.bench.learner import LearnerBenchConfig, bench_updates
 
     rows = bench_updates(LearnerBenchConfig(variants=("cpu-small:c4",), updates=3, episodes=8, device="cuda"))
     (row,) = rows

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from services.bench.learner import random_dsa_episode
+from mea_tools.bench.learner import random_dsa_episode
 from services.common.metrics import ServiceMetrics
 from services.learner.core.gasv2.agent import GasV2Agent
 from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch

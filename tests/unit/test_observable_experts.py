@@ -18,7 +18,7 @@ import pybullet as pb
 import pytest
 
 from services.actor.config import ActorConfig
-from services.actor.rollout import Actor
+from services.actor.rollout import RolloutActor
 from services.tasks import GENERAL_TASKS, make_env
 from services.tasks.experts import layout_style, nearest_object, seed_for_style
 
@@ -122,7 +122,7 @@ def test_decides_from_motion_when_the_fixed_body_is_swapped_after_the_first_deci
 
 @pytest.mark.timeout(120)
 def test_two_demos_are_one_probe_and_one_direct_from_the_layouts_of_the_seed_stream():
-    actor = Actor(ActorConfig(task="block_pull", policy="expert", demos=2, seed_base=500), "test")
+    actor = RolloutActor(ActorConfig(task="block_pull", policy="expert", demos=2, seed_base=500), "test")
     try:
         episodes = [actor.expert_episode(k) for k in range(2)]
         assert [b.meta["policy_kind"] for b in episodes] == ["expert_probe", "expert_direct"]

@@ -49,8 +49,8 @@ import pytest
 
 from proto.actions import DELTA_THETA
 from proto.episode import Episode
-from services.actor.episodes import EpisodeBuilder
 from services.augmenter.core.isometric import WORKSPACE_CENTRE, rotate_actions, rotate_episode
+from services.episodes.builder import EpisodeBuilder
 from services.observation.projection import DEFAULT_SPEC, project_batch, segments_to_points
 from services.tasks import EnvSettings, ManipulationEnv, make_env
 from services.tasks.camera import CameraSettings, render_gripper_depth

@@ -143,7 +143,7 @@ def test_trim_heap_gives_freed_pages_back():
 
     import numpy as np
 
-    from services.bench.soak import rss_bytes
+    from mea_tools.bench.soak import rss_bytes
     from services.common.runtime import trim_heap
 
     trim_heap()

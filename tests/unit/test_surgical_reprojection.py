@@ -21,8 +21,8 @@ pytestmark = pytest.mark.unit
 @pytest.fixture(scope="module")
 def demo() -> Episode:
     """One oracle demonstration recorded as the actor records it (env images included)."""
-    from services.actor.episodes import EpisodeBuilder
-    from services.actor.rollout import run_episode
+    from services.episodes.builder import EpisodeBuilder
+    from services.episodes.rollout import run_episode
     from services.tasks import make_env
     from services.tasks.surgical.oracle import Oracle
 

@@ -104,7 +104,7 @@ def test_the_p_controller_hands_over_inside_the_threshold_and_never_acts_again(e
     """A policy that always climbs (+z) is overridden while the error is outside the threshold on some
     axis; the hand-over happens with every axis inside; afterwards its climb is executed although it
     takes the error far outside again."""
-    from services.actor.rollout import run_episode
+    from services.episodes.rollout import run_episode
 
     threshold = np.asarray(env.settings.controller.phase_threshold)
     errors, states, infos = [], [], []
@@ -138,7 +138,7 @@ def test_the_p_controller_hands_over_inside_the_threshold_and_never_acts_again(e
 
 
 def _builder(env, seed: int = 5):
-    from services.actor.episodes import EpisodeBuilder
+    from services.episodes.builder import EpisodeBuilder
 
     return EpisodeBuilder(task="surgical_grasp_any", seed=seed, actor_id="t", policy_version=-1, policy_kind="random",
                           is_demo=False, segments=env.segment_names)  # fmt: skip
@@ -255,7 +255,7 @@ def test_the_oracle_grasps_on_a_seeded_sample(env):
 def test_a_failed_grasp_terminates_and_is_no_success(env):
     """Closing as soon as the policy has control (the jaws 2 cm real above the object) fails the
     grasp: terminated (not truncated) with -0.1, and the episode does not count as a success."""
-    from services.actor.rollout import run_episode
+    from services.episodes.rollout import run_episode
 
     b = run_episode(env, 8, lambda _o: env.discrete_action(TOGGLE), _builder(env, 8))
     assert b.terminated[-1] and not any(b.truncated) and b.rewards[-1] == pytest.approx(-0.1)
@@ -306,8 +306,8 @@ def test_every_recorded_step_moves_the_pivot_by_one_scale(env, randomised):
     """The transition prior MEA rests on, on recorded episodes (oracle and random policy, controller
     and policy steps alike): pivot_{t+1} - pivot_t = delta_xyz * a_t[dx, dy, dz], where delta_xyz
     is MEA's, unless the env reported the step as clipped or blocked."""
-    from services.actor.rollout import run_episode
     from services.augmenter.core.mea_discrete import MeaDiscreteSettings
+    from services.episodes.rollout import run_episode
     from services.tasks.surgical.settings import RandomisationSettings
 
     acts = env.settings.actions
@@ -376,7 +376,7 @@ def test_the_policy_image_is_rendered_from_the_stored_points_and_recorded(env):
     rows plus the stored pivot) with the state row of the step; an episode records it in
     ``images`` and the wire keeps it."""
     from proto.episode import Episode
-    from services.actor.rollout import run_episode
+    from services.episodes.rollout import run_episode
 
     b = run_episode(env, 6, lambda _o: Oracle(env).act(), _builder(env, 6))
     assert b.success
@@ -411,8 +411,8 @@ def test_meas_workspace_is_the_envs_pivot_workspace(env):
 def test_each_episode_records_what_it_drew(env):
     """Episode.conditions: the randomisation switch, the camera offsets and the object, from the seed."""
     from proto.episode import Episode
-    from services.actor.episodes import EpisodeBuilder
-    from services.actor.rollout import run_episode
+    from services.episodes.builder import EpisodeBuilder
+    from services.episodes.rollout import run_episode
     from services.tasks.surgical.settings import RandomisationSettings
 
     env.reset(3)

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 import torch
 
+from mea_tools.bench.learner import random_dsa_episode
 from proto.episode import Episode
-from services.bench.learner import random_dsa_episode
 from services.learner.config import PRESETS, build_trainer
 from services.learner.core.gasv2.algorithm import GasV2Config
 from tests.helpers.learner import learner_episode, policy_images

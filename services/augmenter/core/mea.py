@@ -1,35 +1,6 @@
 """Multi-Group Equivariant Augmentation (MEA), paper Sec. V, generated backwards in time.
 
-Read beside the paper:
-
-* Phases (Sec. V-A, App. B). Termination (t = H) and trivial (H_p <= t < H) transitions are kept as
-  they are (trivial representation). Non-trivial transitions (t < H_p) are those where the gripper
-  cannot touch an object: its height h_t = h_0 + sum_{j<t} a^z_j Delta stays at or above L_z.
-  H_p is the first step below L_z, minus a conservative margin.
-* Structured actions (Sec. V-B). For t < H_p, with g_t = (delta^r, delta^z, delta^rot, delta^theta)
-  drawn independently per step:
-      abar^xyz_t = R_z(delta^rot) (delta^r a^x, delta^r a^y, delta^z a^z)
-      abar^theta_t = a^theta_t + delta^theta * eps,  eps ~ U[-1, 1]
-  every element clipped to [-1, 1]; the jaw action is unchanged. (The paper prints the radial
-  scale as k = (a^x/|a^xy| delta^r, a^y/|a^xy| delta^r, delta^z) applied element-wise, which would
-  square a^x and lose its sign; we implement the scaling it describes: the x-y part scaled by
-  delta^r along its own direction.)
-* Observations (Sec. V-A, App. A). From the transition prior (objects move by -a Delta in the
-  gripper-centric frame, the gripper turns by a^theta Delta_theta) and the requirement that the
-  augmented state at H_p equals the real one:
-      obar^c_t = o^c_t - D_t,      D_t = Delta * sum_{j=t}^{H_p-1} (a^xyz_j - abar^xyz_j)
-      obar^g_t = R_z(Theta_t) o^g_t, Theta_t = Delta_theta * sum_{j=t}^{H_p-1} (a^theta_j - abar^theta_j)
-  jaw observation, rewards and flags unchanged. In the world the objects stay put and the gripper
-  is at p_t + D_t with yaw psi_t + Theta_t; that is what the feasibility guards and the physics
-  audit check.
-* Feasibility guards (left implicit in the paper). Every augmented gripper pose must be reachable
-  and inside the workspace, and at or above L_z, or the robot's own clipping would break the
-  transition prior. A step whose draws keep failing ends the augmentation there: the episode is
-  cut to start at the next step. Steps where the recorded motion did not follow the action
-  (clipped by the workspace or blocked) cannot be augmented across either.
-
-Actions are (jaw, dx, dy, dz, dtheta); Delta = 0.05 m, Delta_theta = pi/8.
-"""
+Design notes: docs/architecture-notes.md, services/augmenter/core/mea.py."""
 
 from __future__ import annotations
 
@@ -56,14 +27,13 @@ MEA_PARAM_KEYS = (*GROUP_PARAM_KEYS, START_PARAM)
 class MeaSettings:
     """Phases, group ranges and feasibility limits of MEA (defaults: the general-manipulation tasks)."""
 
+    # The pivot sits 0.19 m above the finger tips; objects are at most 0.065 m tall.
     lz: float = 0.27
-    """L_z: gripper (pivot) height in m at or above which the gripper cannot touch an object. The
-    pivot sits 0.19 m above the finger tips, objects are at most 0.065 m tall."""
+    """L_z: pivot height (m) at or above which the gripper touches nothing."""
     margin_steps: int = 1
-    """Conservative margin: H_p is moved this many steps earlier than the height criterion gives."""
+    """Steps H_p is moved earlier (a safety margin)."""
     height_from: str = "actions"
-    """How h_t is known: `actions` (h_0 + cumulative dz, clipped like the controller; the paper) or
-    `recorded` (the privileged gripper pose)."""
+    """How h_t is known: actions (the paper) or recorded (privileged pose)."""
     radial_scale: tuple[float, float] = (0.75, 1.0)
     """Range of delta^r."""
     height_scale: tuple[float, float] = (0.75, 1.0)
@@ -73,15 +43,15 @@ class MeaSettings:
     theta_noise: tuple[float, float] = (0.0, 0.3)
     """Range of delta^theta."""
     discrete: bool = False
-    """Discrete actions (surgical domain): x/y actions rotated by a C4 element with probability
-    `discrete_rotate_prob`; z, theta and jaw actions unchanged."""
+    """Discrete actions: x/y rotated by a C4 element (surgical domain)."""
     discrete_rotate_prob: float = 0.3
     """Probability of rotating a discrete x/y action."""
     max_tries: int = 20
     """Draws per step before the augmentation is cut at that step."""
+    # The workspace, z = finger tips + tip_drop (the live robot: tips in [0.01, 0.25], tip_drop
+    # 0.1815, so pivot z in [0.1915, 0.4315]).
     pivot_low: tuple[float, float, float] = (0.3, -0.2, 0.2)
-    """Lower bounds of the gripper pivot (x, y, z), m: the workspace, z = finger tips + tip_drop
-    (the live robot: tips in [0.01, 0.25], tip_drop 0.1815, so pivot z in [0.1915, 0.4315])."""
+    """Lower bounds of the gripper pivot (x, y, z), m."""
     # Audit fix: z was 0.44 ("tips + 0.19"), above the live robot's 0.4315 (Robot.pivot_bounds()),
     # so a copy could claim a pose the controller clips. 0.43 stays inside, as 0.2 does below.
     pivot_high: tuple[float, float, float] = (0.7, 0.2, 0.43)
@@ -89,7 +59,7 @@ class MeaSettings:
     yaw_limit: float = 2.9
     """|yaw| limit (rad) of the wrist."""
     reach_origin: tuple[float, float, float] = (-0.1, 0.0, 0.2)
-    """Centre of the arm's reach sphere for the pivot (the shoulder, shifted down to the pivot)."""
+    """Centre of the arm's reach sphere for the pivot."""
     reach_radius: float = 0.77
     """Radius of the arm's reach sphere for the pivot (m)."""
     # Audit fix: was 0.002. Settled free motion is within 0.4 mm of a * Delta (the controller stops
@@ -97,9 +67,9 @@ class MeaSettings:
     # clipped by less than 2 mm passed as free, and every augmented state before it was off by
     # the clipped amount (`mea audit`-style replays of random episodes: 1-1.9 mm pivot offsets).
     prior_tolerance: float = 0.0005
-    """Recorded pivot motion may differ from a * Delta by this much (m) and still count as free."""
+    """Tolerance (m) of recorded motion vs a * Delta."""
     yaw_tolerance: float = 0.02
-    """Recorded yaw change may differ from a^theta * Delta_theta by this much (rad)."""
+    """Tolerance (rad) of recorded yaw vs the action."""
 
     def __post_init__(self) -> None:
         if self.height_from not in ("actions", "recorded"):

@@ -1,50 +1,7 @@
 """MEA for the discrete-action surgical domain (Surgical Grasp Any): paper Sec. V and App. B, built
 backwards in time from the termination like ``mea.py``.
 
-Read beside the paper and the authors' GASv2 code (``tasks-and-baselines.md`` sections 5 and 7):
-
-* Phases (App. B, timestep criterion). ``H_p = max(0, H - h_p)``: the termination and the last
-  ``h_p`` transitions (the grasp) are kept as they are (trivial representation); the transitions
-  ``t < H_p`` are augmented. ``h_p = 5`` is the authors' code (every step but the last 5).
-* Structured actions (Sec. V-B, discrete). g_t is an element of C4 acting on the action's (dx, dy).
-  Actions in ``A'_d = {+-z, +-yaw, jaw}`` (``proto.discrete_actions.TRIVIAL``) are never changed.
-  Every other action is kept with probability ``1 - p_rotate`` and otherwise turned by k quarter
-  turns (counter-clockwise from above, ``proto.discrete_actions.rotate_c4``), k uniform in
-  {1, 2, 3}. The paper draws delta^rot uniformly from C4 = {0, pi/2, pi, 3 pi/2}, so a fourth of
-  its "rotated" actions are the identity and an action changes at rate 0.3 * 3/4 = 0.225; here
-  ``p_rotate`` is the rate at which an action actually changes (the 0.3 the paper and the authors'
-  ``--sym-action-noise 0.3`` name); ``p_rotate = 0.225`` gives the paper's literal draw. The jaw
-  component is never changed. (The authors' code differs: one C4 element per episode, and with
-  probability 0.3 an action replaced by a random translation; we follow the paper.)
-* The hybrid P-controller's approach steps (continuous (dx, dy, dz), jaw open; not in the paper,
-  whose action set has none): dz is trivial, (dx, dy) is turned by the same kind of draw, exactly
-  (a quarter turn permutes and negates coordinates, so the result stays in [-1, 1]^2 unclipped). A
-  step with (dx, dy) = (0, 0) is trivial.
-* Observations. Yaw actions are trivial, so the gripper's yaw and its cloud in the gripper-centric
-  frame (world orientation) are unchanged (Theta_t = 0). From the transition prior and the
-  requirement that the state at H_p is the real one (``mea.py``):
-      D_t = delta_xyz * sum_{j=t}^{H_p-1} (a^xyz_j - abar^xyz_j)     (D_t = 0 for t >= H_p)
-      object points  obar_t = o_t - D_t,   gripper pivot  pbar_t = p_t + D_t
-  so the object stays fixed in the world (``object_poses`` unchanged) and only the gripper moves; dz
-  is trivial, so D_t has no z part. Jaw, rewards and flags are unchanged. ``contacts`` are the
-  source's for t >= H_p and wherever D_t = 0 (the gripper is where it was), and False where the
-  copy's gripper is elsewhere (the non-trivial phase is the one without interaction).
-* Images. A moved gripper cloud must be re-rendered through the task's own observation pipeline
-  (the authors' Occup -> DSA -> ObsImage). That pipeline is injected into ``mea_discrete_copies``
-  as a callable (the augmenter's: ``pipeline.discrete_reprojector``, Surgical Grasp Any's DSA image
-  of the copy's points); without one a copy carries no images.
-* Feasibility guards (implicit in the paper). (1) Every moved pivot ``pbar_t`` must lie inside the
-  env's pivot workspace, or the env would clip the move and break the transition prior: a copy that
-  leaves it is drawn again from scratch (rejection sampling, so a kept copy is a draw of the paper's
-  distribution conditioned on staying inside) at most ``max_redraws`` times, then given up (None).
-  (2) A source transition before H_p whose recorded pivot motion differs from ``delta_xyz * a_t`` by
-  more than ``prior_tolerance`` (clipped by the workspace, the instrument blocked) cannot be
-  augmented across: the copy starts after the last such step (``start``; rows before it are cut).
-
-Provenance: ``Augmentation.kind`` "mea" (a copy's task says which MEA made it; no isometric rotation
-composes with it in this domain, Sec. VI), ``phase_split`` H_p in the copy's rows, ``params``
-``quarter_turns`` (H_p,) int64 (k per step, 0 where kept) and ``start`` (1,) int64.
-"""
+Design notes: docs/architecture-notes.md, services/augmenter/core/mea_discrete.py."""
 
 from __future__ import annotations
 
@@ -79,31 +36,33 @@ class MeaDiscreteSettings:
     """Phases, group draws and feasibility limits of discrete MEA (defaults: Surgical Grasp Any)."""
 
     h_p: int = 5
-    """Transitions kept at the end: H_p = H - h_p (the authors' code keeps the last 5 steps)."""
+    """Transitions kept at the end: H_p = H - h_p."""
     copies: int = 200
-    """K: MEA copies per episode MEA applies to (the paper: 200 per demonstration)."""
+    """K: MEA copies per episode (the paper: 200)."""
     p_rotate: float = 0.3
-    """Probability that a non-trivial action is turned (by 1, 2 or 3 quarter turns)."""
+    """Probability of turning a non-trivial action."""
+    # Must equal the env's step (0.05 m world step x 0.3 discrete scale); the transition prior D_t rests
+    # on it.
     delta_xyz: float = 0.015
-    """Sim metres the pivot moves per unit of dx, dy or dz. Must equal the env's step (0.05 m world
-    step x 0.3 discrete scale); the transition prior D_t rests on it."""
+    """Sim metres the pivot moves per unit of dx, dy or dz."""
+    # The env's (``SurgicalGraspEnv.pivot_bounds``): its 0.5 x 0.5 x 0.35 workspace of the closed jaw
+    # tips (centred at x = y = 0, above the tray at z = 0) raised by the pivot's height above the tips
+    # (0.1430, calibrated by the env; a test keeps the two equal to 1e-4).
     pivot_low: tuple[float, float, float] = (-0.25, -0.25, 0.143)
-    """Lower bounds of the gripper pivot (x, y, z), sim metres: the env's (``SurgicalGraspEnv.
-    pivot_bounds``), its 0.5 x 0.5 x 0.35 workspace of the closed jaw tips (centred at x = y = 0,
-    above the tray at z = 0) raised by the pivot's height above the tips (0.1430, calibrated by the
-    env; a test keeps the two equal to 1e-4)."""
+    """Lower bounds of the gripper pivot (x, y, z), sim metres."""
     pivot_high: tuple[float, float, float] = (0.25, 0.25, 0.493)
-    """Upper bounds of the gripper pivot (x, y, z), sim metres (the env's, as ``pivot_low``)."""
+    """Upper bounds of the gripper pivot (x, y, z), sim m."""
+    # Recorded pivots are measured, and sit within about 2e-4 of the commanded ones the env clips
+    # (the drive's settling and sag).
     bound_tolerance: float = 5e-4
-    """A moved pivot may lie this far (sim metres) outside the bounds: recorded pivots are measured,
-    and sit within about 2e-4 of the commanded ones the env clips (the drive's settling and sag)."""
+    """How far (sim m) a moved pivot may lie outside the bounds."""
     max_redraws: int = 20
-    """Fresh draws of a copy that left the workspace before it is given up."""
+    """Redraws of a copy that left the workspace."""
+    # A tenth of a step. The env's recorded steps follow the prior within 0.0002 (the drive's settling),
+    # 0.0007 with domain randomisation's action noise (its bound: 0.0005 per axis); a workspace clip or
+    # a blocked move misses by more.
     prior_tolerance: float | None = 0.0015
-    """Recorded pivot motion may differ from ``delta_xyz * a`` by this much (sim m, a tenth of a
-    step) and still count as free; None: trust every recorded step. The env's recorded steps follow
-    the prior within 0.0002 (the drive's settling), 0.0007 with domain randomisation's action noise
-    (its bound: 0.0005 per axis); a workspace clip or a blocked move misses by more."""
+    """Tolerance (sim m) of recorded motion; None: off."""
 
     def __post_init__(self) -> None:
         if self.h_p < 0 or self.copies < 0 or self.max_redraws < 0:

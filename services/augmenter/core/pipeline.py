@@ -2,38 +2,7 @@
 the episodes MEA applies to, its MEA copies, every one re-projected through the same voxel
 projection.
 
-Following the paper's integration with Equi-RSAC: every stored episode gets ``isometric_copies``
-rotated copies (4); MEA makes ``mea_copies`` (6) per demonstration by default, and all MEA copies
-of one episode share a single isometric rotation (G_t x G). Each copy's draws come from
-``np.random.default_rng([seed, copy_index])`` with the seed recorded in its provenance, so any copy
-can be regenerated from its source episode.
-
-Rotation angles (``isometric_angle``, ``shared_rotation``) are drawn by ``isometric.draw_rotation``
-so that no rotated (dx, dy) leaves [-1, 1]: an isometric copy's angle fits the raw episode's
-actions, the shared angle of the MEA copies fits every one of them (else a multiple of 90
-degrees). A rotated copy's actions are then the exact rotation of its source's, never clipped, and
-``params["rotation"]`` with the seed regenerates it.
-
-Observations (``AugmentSettings.observation``)
-    ``voxel`` (EquiObs, MEA): every output's images are re-projected from its (rotated) point clouds.
-    ``depth`` (the Equi-RSAC baseline, ``equirsac``): the raw episode must carry the rendered depth
-    images (``Episode.images`` (T+1, 1, N, N) float, as the actor records them with
-    ``--depth-image``); every output gets ``depth_image.policy_images`` of them, the isometric copies
-    rotated by their own angle with ``depth_image.rotate_images`` (the copy's points, actions and
-    privileged poses are rotated by the same angle, as for voxel). A rendered image cannot be
-    re-rendered for a transformed scene, and the paper's Equi-RSAC baseline has no MEA, so ``depth``
-    requires ``mea_on="none"`` (checked at construction rather than silently ignored, so a run
-    configured with MEA on depth images fails loudly). ``reproject`` does not apply to ``depth``:
-    its images are always attached (nothing downstream could make them).
-
-Discrete-action tasks (``mea_discrete.DISCRETE_MEA_TASKS``: Surgical Grasp Any)
-    The raw episode (with the env's own images) followed by its ``mea_discrete.copies`` (200) MEA
-    copies from ``mea_discrete.py`` (timestep phases, C4 actions); no isometric copies (the paper,
-    Sec. VI: the camera is not top-down) and ``observation`` does not apply. With ``reproject`` each
-    copy is re-rendered by ``discrete_reprojector(task)``, the one place the task's observation
-    pipeline is wired (Surgical Grasp Any: ``reproject_dsa``, the env's DSA image of the copy's
-    moved points with the source's state rows); where none is, copies carry no images.
-"""
+Design notes: docs/architecture-notes.md, services/augmenter/core/pipeline.py."""
 
 from __future__ import annotations
 
@@ -79,23 +48,19 @@ class AugmentSettings:
     """What the augmenter makes of each raw episode."""
 
     mea_copies: int = 6
-    """MEA copies per episode MEA applies to (paper: 6 for Equi-RSAC); the discrete-action tasks
-    take ``mea_discrete.copies`` (paper: 200 for GASv2)."""
+    """MEA copies per episode (paper: 6)."""
     mea_on: str = "demos"
-    """Which episodes get MEA: demos (the paper), successes, all (beyond the paper), none."""
+    """Episodes MEA applies to: demos, successes, all, none."""
     isometric_copies: int = 4
     """Rotated copies of every stored episode (Equi-RSAC: 4)."""
     success_isometric_copies: int = 0
-    """Rotated copies of each successful episode (demonstrations, online successes) instead of
-    isometric_copies; 0: isometric_copies (the paper). Beyond the paper: successes are the few
-    episodes the policy clones, and a C4 network sees only their 90-degree turns for free."""
+    """Rotated copies of each success (0: as others)."""
     isometric_on_mea: bool = True
-    """Rotate all MEA copies of an episode by one shared random angle (G_t x G)."""
+    """Rotate an episode's MEA copies by one angle."""
     reproject: bool = True
-    """Attach voxel-projected images (depth + jaw, uint8) to every output episode (voxel only: depth
-    always attaches its images)."""
+    """Attach voxel-projected images (voxel only)."""
     seed: int = 0
-    """Base seed; each source episode's seed mixes it with a hash of the episode id."""
+    """Base seed (mixed with each episode id's hash)."""
     mea: MeaSettings = field(default_factory=MeaSettings)
     """MEA phases, group ranges and feasibility limits."""
     mea_discrete: MeaDiscreteSettings = field(default_factory=MeaDiscreteSettings)
@@ -103,8 +68,7 @@ class AugmentSettings:
     projection: ProjectionSpec = field(default_factory=ProjectionSpec)
     """Voxel projection of the observations."""
     observation: str = "voxel"
-    """Policy images: voxel (projected point clouds) or depth (the actor's rendered image, needs
-    actors run with --depth-image; no MEA: requires mea_on none)."""
+    """Policy images: voxel (projected point clouds) or depth (rendered)."""
 
     def __post_init__(self) -> None:
         if self.mea_on not in MEA_ON:

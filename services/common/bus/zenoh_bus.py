@@ -72,20 +72,17 @@ class ZenohConfig:
     """How a process joins the Zenoh network."""
 
     mode: Literal["peer", "client", "router"] = "peer"
-    """Session mode: `peer` (default), `client` (all traffic through a router), or `router`."""
+    """Session mode: peer, client or router."""
     connect: tuple[str, ...] = ()
-    """Endpoints to connect to, e.g. `tcp/10.0.0.5:7447`; empty means `tcp/127.0.0.1:7447` for a peer or
-    client and nothing for a router."""
+    """Endpoints to connect to; empty: the mode's."""
     listen: tuple[str, ...] = ()
-    """Endpoints to listen on; empty means `tcp/127.0.0.1:0` for a peer and `tcp/127.0.0.1:7447` for a router."""
+    """Endpoints to listen on; empty: the mode's."""
     multicast_scouting: bool = False
-    """Multicast discovery (off: explicit endpoints only, which is what works in containers and CI)."""
+    """Multicast discovery (off: explicit endpoints only)."""
     namespace: str = "default"
-    """Key namespace separating training runs that share one Zenoh network."""
+    """Key namespace separating runs on one network."""
     config_file: Annotated[str, tyro.conf.arg(aliases=("--zenoh-config",))] = ""
-    """Zenoh's own config file (JSON5) for TLS, user/password authentication, access control or any other
-    Zenoh setting. Every key the file sets wins; the fields above fill only the keys it leaves unset, and
-    a field given a non-default value that contradicts the file is an error. Empty: no file."""
+    """Zenoh's own config file (JSON5); empty: none."""
 
     def __post_init__(self) -> None:
         if self.config_file:

@@ -1,24 +1,6 @@
 """The safety envelope between a policy and a robot: what may be commanded, per robot.
 
-A policy's action is the project's normalised ``(jaw, dx, dy, dz, dtheta)`` (``proto.actions``);
-the robot's ``Limits`` say what one unit means in its frame (metres and radians per unit) and what
-it may do. ``Envelope.command`` turns an action into the command actually sent, in this order:
-
-1. **Refusal.** A non-finite action, or an observation of the gripper pivot that is non-finite or
-   outside the workspace by more than ``observation_margin``, gives *hold* with that reason: the
-   robot keeps its pose and its jaw command, nothing moves on bad data.
-2. **Rate.** A command sooner than ``min_interval`` after the previous one gives *hold* ("rate").
-3. **Per-step limits.** Components are clipped to [-1, 1]; the translation is scaled down (as a
-   vector, so its direction is kept) to at most ``max_translation`` metres, the rotation clipped to
-   ``max_rotation`` radians ("max_translation", "max_rotation").
-4. **Workspace.** The translation is cut per axis so that pivot + move stays in
-   ``[workspace_low, workspace_high]`` ("workspace"); a pivot already outside (within the margin)
-   may only move back towards the box.
-
-A *hold* is the action ``(jaw, 0, 0, 0, 0)`` with the last jaw command sent (open at start). Every
-decision lists its reasons, so the service can count clamps and holds by reason. The watchdog (stale
-observations) and the e-stop live in the service; they also end in ``hold``.
-"""
+Design notes: docs/architecture-notes.md, services/inference/core/envelope.py."""
 
 from __future__ import annotations
 

@@ -1,28 +1,6 @@
 """The inference server's core: the policy it holds, robot sessions, and one act() per observation.
 
-Apart from transport and metrics (the shell, ``services.inference.main``, wires queries, weights and
-the e-stop around it). The clock is passed in, so every timing rule is tested with a fake one.
-
-**Weights.** ``offer(blob)`` checks a new version before anything changes: newer than the one held
-(never backwards), from the lineage being followed (the first blob's ``run_id``, or a pinned one),
-digest matching the tensors, and a network it can build and fill. Only then does one assignment
-make it current; a refused blob leaves the running policy as it was and says why
-(``SwapRefusedError.reason``).
-
-**Sessions.** One per robot, owned by the sender that opened it (with an authenticated bus, the
-robot's verified ``<service>/<instance>``): another sender can neither reset nor drive it.
-``reset`` starts an episode and pins the current version to it: every action of that episode comes
-from those weights and a recurrent state they built, so a swap never mixes two versions in one
-state; the next episode takes the newest. Sessions idle for ``session_timeout`` are dropped.
-
-**act.** Checks, in order, each ending in a hold (``Envelope.hold``) with its reason: the session
-exists and the sender owns it (``no_session``), the episode is the session's (``stale_episode``),
-no e-stop is engaged (``estop``), the observation is fresh (``watchdog``: older than
-``max_observation_age``), the pivot is finite and inside the workspace (``non_finite_observation``,
-``out_of_workspace``), the observation is one the policy can take (``bad_observation``). Then the
-policy acts and the envelope turns its action into the command (clamps or a rate hold,
-``services.inference.core.envelope``). The reply echoes the request's nonce.
-"""
+Design notes: docs/architecture-notes.md, services/inference/core/sessions.py."""
 
 from __future__ import annotations
 

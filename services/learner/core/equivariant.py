@@ -1,30 +1,6 @@
 """C4 / D4 equivariant layers in plain PyTorch (weight-tied group convolutions, Cohen & Welling 2016).
 
-Conventions are those of :mod:`services.learner.core.groups` (element (m, r) = R(r 90 deg) F^m, index
-4 m + r, images rows = +x and columns = +y). A tensor of F regular fields has F |G| channels laid out
-as ``channel = field * |G| + element index``; g acts on it by moving space and permuting channels,
-``(g f)_h = f_{g^-1 h}``. Every layer maps inputs of its declared type to outputs of its declared type
-so that f(g x) = g f(x) for every g, exactly up to float rounding:
-
-* `LiftConv2d`: trivial channels (images) -> regular fields; output element g uses the base kernel
-  transformed by g.
-* `GroupConv2d`: regular -> regular; output element g uses the base kernel with its group axis
-  permuted by g^-1 h and its space transformed by g.
-* `GroupLinear`: the 1x1 case of `GroupConv2d` on flat vectors (..., F |G|): the equivariant linear /
-  MLP layer (block-circulant for C4).
-* `GroupLayerNorm`: LayerNorm over all channels with a per-field affine (RLPD's critic LayerNorm).
-* `ActionLift`: an action (trivial jaw, dz; irrep (dx, dy); sign dtheta) -> regular fields,
-  lifted(a)_g = W (g^-1 a) + b.
-* `group_pool` / `InvariantHead`: regular -> trivial (mean over the group axis, then any linear map).
-* `ActionHead`: regular -> an action-typed 5-vector (trivial jaw, dz; irrep (dx, dy); sign dtheta for
-  D4, trivial for C4).
-* `EquivariantLSTM`: gates from 1x1 group linears, pointwise nonlinearities, optional peepholes tied
-  per field (pitfall P1: per-channel peepholes break equivariance).
-
-Biases are one per field, shared by its |G| channels; ReLU, sigmoid and tanh act pointwise, so they
-commute with the channel permutation. Each layer expands its base weights with one gather per forward
-call and runs one conv2d / linear, so the cost is a plain layer's plus a small kernel copy.
-"""
+Design notes: docs/architecture-notes.md, services/learner/core/equivariant.py."""
 
 from __future__ import annotations
 

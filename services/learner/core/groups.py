@@ -1,31 +1,6 @@
 """The C4 / D4 symmetry groups and how they act on images, actions and regular fields.
 
-One convention module for the networks, their tests and the learner (pitfall P3).
-
-Elements
-    g = (m, r): mirror m in {0, 1}, rotation r in {0, 1, 2, 3}. On the plane g acts as
-    ``R(r 90 deg) F^m``, F the reflection (x, y) -> (x, -y). Composition and inverse:
-
-        (m1, r1)(m2, r2) = (m1 xor m2, r1 + (-1)^m1 r2 mod 4)        (since F R = R^-1 F)
-        (m, r)^-1        = (m, -(-1)^m r mod 4)
-
-    Element indices: index(m, r) = 4 m + r, so C4 = elements 0..3 of D4, in the same order.
-
-Images (..., C, H, W), H = W even
-    Rows increase with world +x, columns with world +y (the projection module's convention). A world
-    rotation by +90 deg, (x, y) -> (-y, x), is ``torch.rot90(img, 1, dims=(-2, -1))``; F (y -> -y) is
-    ``torch.flip(img, dims=(-1,))``. So g transforms an image by flipping first (if m), then turning
-    r times: ``(g I)(p) = I(g^-1 p)``, pixel for pixel.
-
-Actions a = (jaw, dx, dy, dz, dtheta)
-    (dx, dy) -> R(r 90 deg) F^m (dx, dy) (frequency-1 irrep); dtheta -> (-1)^m dtheta (sign
-    representation: a mirror reverses yaw, pitfall P2); jaw and dz are invariant.
-
-Regular fields
-    A field has |G| channels, one per element; a tensor of F fields lays its channels out as
-    ``channel = field * |G| + element index``. g acts by moving space (if any) and permuting channels:
-    ``(g f)_h = f_{g^-1 h}``.
-"""
+Design notes: docs/architecture-notes.md, services/learner/core/groups.py."""
 
 from __future__ import annotations
 

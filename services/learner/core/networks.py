@@ -1,26 +1,6 @@
 """Equi-RSAC actor and critic (C4 / D4 equivariant) and their non-equivariant RSAC twin.
 
-Shapes: images (B, T, C, H, W) float32, previous actions (B, T, 5) = a_{t-1} beside o_t (zeros at
-t = 0), recurrent state (h, c) each (B, lstm_hidden). Conventions (element (m, r), image orientation,
-action types, regular-field channel layout) are those of :mod:`services.learner.core.groups`.
-
-Actor (separate from the critic, as in Equi-RSAC): image encoder e(o_t) (regular fields on a 1x1 map,
-flattened), previous-action embedding, LSTM over [e(o_t), emb(a_{t-1})], then an MLP on [h_t, e(o_t)]
-and two heads: the mean, typed (trivial jaw, irrep (dx, dy), trivial dz, sign dtheta for D4 / trivial
-for C4), and log std (5 invariant outputs, clamped to [-20, 2]).
-
-Critic: its own encoder, previous-action embedding and LSTM give per-step features [h_t, e(o_t)]
-(regular fields); `Critic.q` appends an embedding of the current action a_t and runs two MLPs to
-invariant scalars (twin Q). Splitting `features` from `q` lets the SAC losses run the recurrent part
-once and evaluate Q at several actions.
-
-Equivariance: with g acting on images (`transform_images`), actions (`transform_actions`) and regular
-features (`transform_regular`), actor mean(g o, g a_prev) = g mean(o, a_prev), log std and both Q values
-are invariant, and critic features transform as regular fields, at every step.
-
-group "none" builds the same graph from plain Conv2d / Linear / nn.LSTM (orthogonal init, zero bias),
-a layer of F fields becoming 4 F channels (the C4 channel counts).
-"""
+Design notes: docs/architecture-notes.md, services/learner/core/networks.py."""
 
 from __future__ import annotations
 
@@ -65,13 +45,13 @@ class NetConfig:
     image_size: int = 84
     """H = W of the input images."""
     in_channels: int = 2
-    """Input image channels (depth + tiled jaw opening), trivial fields."""
+    """Input image channels (depth + jaw opening)."""
     encoder: tuple[tuple[int, int, int], ...] = ((8, 8, 4), (16, 4, 2), (16, 3, 1), (16, 3, 1), (16, 3, 1))
-    """(regular fields, kernel, stride) per conv + ReLU layer, before the final conv."""
+    """(fields, kernel, stride) of each conv + ReLU layer."""
     final_kernel: int = 3
-    """Kernel of the final conv (+ ReLU) to ``image_embed`` channels; it must leave a 1x1 map."""
+    """Kernel of the final conv (must leave a 1x1 map)."""
     image_embed: int = 128
-    """Channels of the image embedding (fields * |G| for the equivariant nets)."""
+    """Channels of the image embedding."""
     action_embed: int = 16
     """Channels of each action embedding."""
     lstm_hidden: int = 128
@@ -79,18 +59,13 @@ class NetConfig:
     mlp_hidden: tuple[int, ...] = (128, 128)
     """Hidden channels of the actor and Q MLPs."""
     actor_prev_action: bool = True
-    """Feed the previous action a_{t-1} to the actor's LSTM (Equi-RSAC). Off: the actor reads its
-    observations only; an actor trained to imitate smooth demonstrations otherwise learns to repeat
-    a_{t-1} (the copycat shortcut) and stalls on its own rollouts."""
+    """Feed the previous action to the actor's LSTM (Equi-RSAC)."""
     critic_layer_norm: bool = False
-    """LayerNorm after each hidden linear layer of the Q MLPs (RLPD: bounds Q on actions the data
-    never shows; per-field affine in the equivariant nets). Off in the paper's networks."""
+    """LayerNorm after each hidden layer of the Q MLPs (RLPD)."""
     critic_input: str = "image"
-    """What the critic reads: image (Equi-RSAC's recurrent image critic) or state (the simulator's
-    privileged state in a canonical frame, ``privileged.py``: an asymmetric actor-critic; training
-    in simulation only, the policy never reads it)."""
+    """Critic input: image or state (simulation only)."""
     state_critic_hidden: tuple[int, ...] = (256, 256)
-    """Hidden widths of the state critic's Q MLPs (LayerNorm + ReLU after each)."""
+    """Hidden widths of the state critic's Q MLPs."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "encoder", tuple(tuple(int(v) for v in layer) for layer in self.encoder))

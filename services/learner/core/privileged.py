@@ -1,29 +1,6 @@
 """What the state critic reads: the simulator's privileged state of each step, in a canonical frame.
 
-An asymmetric actor-critic (Pinto et al., 2018) trains the image policy with a critic that reads
-the simulator's state instead of the policy's observations: the critic is only used in training,
-in simulation, and the policy never sees this state. Here it also knows what the policy has to
-find out: which of the two identical objects is the immovable one (``Episode.fixed_object``).
-
-Canonical frame, per step: origin at the gripper (x, y), x axis from the movable object's centre
-to the immovable one's (the two never coincide), z up. Every feature is measured in it, so the
-state is invariant under any rotation about z and any horizontal translation of the whole scene
-(with the actions turned alike: ``CANONICAL_ANGLE``); that is the symmetry the augmenter's rotated
-copies and MEA's translations rely on, exact here rather than learnt.
-
-Row layout (``STATE_DIM`` float32 per observation):
-
-    0       the frame's angle phi (rad, world): an action's (dx, dy) is turned by -phi
-    1, 2    movable object centre (x, y) - gripper, in the frame      (per 0.2 m)
-    3, 4    immovable object centre (x, y) - gripper, in the frame    (per 0.2 m)
-    5, 6    movable, immovable object centre z - gripper z            (per 0.2 m)
-    7       gripper z (world)                                          (per 0.2 m)
-    8-11    cos, sin of n (yaw - phi) for the movable, immovable object (n: the objects' symmetry order)
-    12, 13  cos, sin of 2 (gripper yaw - phi) (a two-finger gripper looks the same turned by pi)
-    14      jaw opening
-    15, 16  gripper touches the movable, the immovable object
-    17      distance between the two object centres (x, y)             (per 0.2 m)
-"""
+Design notes: docs/architecture-notes.md, services/learner/core/privileged.py."""
 
 from __future__ import annotations
 
@@ -37,7 +14,7 @@ if TYPE_CHECKING:
     from proto.episode import Episode
 
 STATE_DIM = 18
-"""Floats per observation row (see the module docstring)."""
+"""Floats per observation row (docs/architecture-notes.md)."""
 CANONICAL_ANGLE = 0
 """Column of the frame angle."""
 SCALE = 1.0 / 0.2

@@ -1,35 +1,6 @@
 """Sample-to-insert ratio limiting between env-step producers (actors) and gradient updates.
 
-Modelled on the semantics of DeepMind Reverb's ``SampleToInsertRatio`` rate limiter (described
-here from its documented behaviour; no code taken from it). Two counters:
-
-* ``inserts``: env steps inserted. The learner calls ``inserted(T)`` for raw episodes only, not for
-  augmented copies, so the ratio is "updates per real env step" (Equi-RSAC: 1 update per step);
-* ``samples``: gradient updates (one ``sampled()`` per update, whatever its batch size).
-
-With ``spi = samples_per_insert`` and ``diff = inserts * spi - samples`` (updates still owed):
-
-* sampling ``n`` more is allowed iff ``inserts >= min_size_to_sample`` and
-  ``diff - n >= min_diff``;
-* inserting ``n`` more env steps is allowed iff ``(inserts + n) * spi - samples <= max_diff``;
-
-where, as in Reverb, ``min_diff = spi * min_size_to_sample - error_buffer`` and
-``max_diff = spi * min_size_to_sample + error_buffer``. So once ``min_size_to_sample`` steps are in,
-the learner may run ``error_buffer`` updates of burst, and afterwards updates and env steps stay
-within ``error_buffer`` of the target ratio on either side: the learner waits when it is ahead, the
-producers are told to wait (``inserts_allowed() == 0``) when they are ahead.
-
-No deadlock: ``error_buffer >= max(1, spi)`` is required (Reverb imposes the same bound). Suppose,
-after ``min_size_to_sample``, neither one sample nor one insert were allowed: ``diff - 1 < min_diff``
-and ``diff + spi > max_diff``, hence ``max_diff - min_diff < 1 + spi``; but
-``max_diff - min_diff = 2 * error_buffer >= 2 * max(1, spi) >= 1 + spi``. Arithmetic is exact
-(``fractions.Fraction`` of the float parameters), so the argument holds bit for bit, including at
-the boundary ``error_buffer == max(1, spi)``.
-
-The counters only record: ``inserted`` and ``sampled`` never refuse (an actor finishing an episode
-may overshoot ``max_diff``; that only lets the learner catch up). Callers gate with
-``can_sample``/``samples_allowed`` and ``can_insert``/``inserts_allowed``.
-"""
+Design notes: docs/architecture-notes.md, services/learner/core/rate_limiter.py."""
 
 from __future__ import annotations
 
@@ -73,7 +44,7 @@ def _count(name: str, n: int) -> int:
 
 @dataclass
 class SampleToInsertRatio:
-    """Keep gradient updates per inserted env step near ``samples_per_insert`` (see module docstring)."""
+    """Keep gradient updates per inserted env step near ``samples_per_insert`` (docs/architecture-notes.md)."""
 
     samples_per_insert: float
     """Target updates per inserted env step (> 0)."""

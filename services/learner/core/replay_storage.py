@@ -1,42 +1,7 @@
 """Storage of the sequence replay: a preallocated arena of uint8 observation rows, inserts with
 their validation, and eviction. Sampling and checkpoint state are ``replay.SequenceReplay``'s.
 
-Why this layout (tasks-and-baselines.md §8 P4): the public code keeps float32 ``obs`` and
-``next_obs`` per transition, about 11.3e9 bytes for 1e5 transitions of (2, 84, 84). Here:
-
-* an episode of ``T`` transitions stores its ``T+1`` observations once (the next observation of
-  step ``t`` is row ``t+1``), as uint8 codes;
-* a channel that is constant over the image (the tiled jaw code, channel 1 of the policy image
-  format, ``services.observation.image_format``) is stored as one byte per observation and
-  re-tiled by the consumer (``SequenceBatch.images_uint8``);
-* actions float32 (T, 5), rewards float32, ``terminated``/``truncated`` bool;
-* optionally ``state_dim`` float32 per observation: the privileged state a state critic reads
-  (``services.learner.core.privileged``), given beside the episode at insert.
-
-Storage is preallocated once as a flat arena of rows, one row per observation (the transition
-fields of an episode's last row are unused and never read), plus one all-zero row that padding points at. An
-episode table maps each stored episode to its rows, padded to ``seq_len + 1`` with the zero row,
-so a batch is a single fancy-indexing gather with a (B, L+1) index array and padded entries come
-out as zeros without any masking pass. Free rows and table slots are kept on stacks: episodes need
-not be contiguous, so pinned demonstrations never fragment the arena and eviction is O(T) numpy
-work with no compaction.
-
-Capacity and eviction policy:
-
-* capacity counts stored transitions, raw and augmented copies alike (Equi-RSAC's 1e5 includes
-  the augmented copies, P7); the table also holds at most ``max_episodes`` episodes (default
-  ``ceil(capacity / 4)``), which bounds the arena at ``capacity + max_episodes`` observation rows;
-* when an insert does not fit, the oldest non-demonstration episodes are evicted first (FIFO by
-  insertion order) until it does;
-* demonstrations are pinned and never evicted: raw demos and augmented copies of demos (the
-  augmenter copies ``is_demo`` from the source with ``dataclasses.replace``; an augmented episode
-  whose ``source_episode_id`` is a stored raw demo counts as a demo too);
-* an insert that cannot fit even after evicting every non-demo episode (the demos alone would
-  exceed the capacity or the table) raises ``ValueError``: nothing is dropped silently, and a
-  rejected insert leaves the buffer unchanged.
-
-Not thread-safe: the caller serialises inserts and samples.
-"""
+Design notes: docs/architecture-notes.md, services/learner/core/replay_storage.py."""
 
 from __future__ import annotations
 
@@ -98,7 +63,7 @@ def _default_max_episodes(capacity_transitions: int) -> int:
 
 
 class ReplayStorage:
-    """Whole-episode storage with a fixed memory budget; see the module docstring for the policy.
+    """Whole-episode storage with a fixed memory budget; see docs/architecture-notes.md for the policy.
 
     Args:
         capacity_transitions: stored transitions at most (raw and augmented copies alike).

@@ -1,54 +1,7 @@
 """Surgical Grasp Any (paper Sec. IV-C, after GASv2): grasp a needle, block or rod with a PSM-like
 instrument, hybrid P-control then policy, FSM rewards.
 
-The env speaks the project's ManipulationEnv API: ``reset(seed) -> Observation``, ``step(action) ->
-(obs, reward, terminated, truncated, info)``, ``observe()``, ``close()``, with ``settings.max_steps``,
-``segment_names`` and ``task`` (``expert``, ``fixed_index``).
-
-Action: the 5-vector (jaw, dx, dy, dz, dtheta) in [-1, 1]. The policy's nine discrete actions travel
-as such vectors (``proto.discrete_actions``); any finite vector is accepted and clipped. Who acts:
-
-- while ``controller_state`` is 1 the P-controller (``control.HybridController``) acts and the
-  given action is ignored (its continuous action, each axis in [-1, 1], jaw open);
-- afterwards the given action acts.
-
-Either way one scale applies (``ActionSettings.step_translation``, ``step_rotation``): a unit of
-dx, dy or dz moves the tips ``0.3 * unit_translation`` (0.015 sim, 3 mm real) and a unit of dtheta
-turns 45 degrees. So every recorded step satisfies the transition prior MEA rests on,
-``pivot_{t+1} - pivot_t = 0.015 * a_t[dx, dy, dz]`` (within the drive's settling, measured under
-0.2 mm sim; domain randomisation adds its action noise), except where ``info['clipped']`` (a
-workspace or yaw limit clipped the command) or ``info['blocked']`` (the tool did not reach the
-commanded pivot, ``blocked_tolerance``) says otherwise.
-
-``info['executed_action']`` is the action that produced the next observation (the controller's or
-the policy's), which is what an episode must record. The jaw component is the jaw command after
-the step: >= 0 open, < 0 closed.
-
-Success (checked after the step's physics, exactly): on the step whose command turns the jaw from
-open to closed, once the jaws have come to rest, both jaw links must be in contact with the object
-(``getContactPoints`` per jaw link). If so, the tray's constraint is removed and a fixed constraint
-(maxForce 20) ties the object to the wrist: the object is *grasped*. Success ends an episode when
-the object is grasped, still within ``hold_tolerance`` of where the grasp put it relative to the
-wrist, and has risen ``lift_height`` (0.5 cm real) above where it lay. A closing without both
-contacts is a failed grasp trial; ``max_grasp_trial`` (1) of them end the episode as a failure, and
-so does opening the jaw on a grasped object (it drops). Rewards: +1 success, -0.1 failure, -0.01 an
-abnormal step (a workspace or yaw limit clipped the command, or the gripper centroid dived below
-``fsm_z_err_min``), -0.001 otherwise. ``terminated`` marks success and failure (both end the task);
-``truncated`` only the 80-step limit.
-
-Observation: the camera's masked depth pixels (with the image noise of domain randomisation) are
-back-projected, cropped to the DSA cube and downsampled to one point per voxel (``world``: what the
-P-controller's voxel centroids see); each segment's cloud is then drawn to ``points_per_segment``
-gripper-centric points (``point_counts``: how many distinct points it had). ``image`` is the policy
-image, ``services.observation.dsa.dsa_image`` (3 x 64 x 64 uint8; state row: gripper_state 1 when
-the jaw is commanded closed, fsm_state, controller_state) of exactly the stored points
-(``dsa.world_clouds``: the observed rows plus the stored pivot), so that MEA copies, re-rendered
-from their moved points by the same two functions, share the raw images' distribution and a copy
-that is not moved reproduces them bit for bit. The cost: where a cloud had more distinct points than
-``points_per_segment`` (the gripper: about 400 to 550 voxels against 256 points) the image shows the
-drawn subset. No ``cam_rotation``: the camera pose noise of domain randomisation already moved the
-rendering camera, so the points carry it.
-"""
+Design notes: docs/architecture-notes.md, services/tasks/surgical/env.py."""
 
 from __future__ import annotations
 

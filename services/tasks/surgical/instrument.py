@@ -1,26 +1,6 @@
 """A PSM-like surgical instrument built from pybullet primitives, and its Cartesian drive.
 
-Bodies and joints (sim units, SCALING = 5; real sizes in the constants' names):
-
-- base: the shaft, a vertical cylinder (8 mm diameter) whose frame sits at its lower end, on the
-  tool axis; it never turns.
-- link 0, the wrist: a small box below the shaft on a revolute joint about the tool axis (the wrist
-  yaw). Its angle is the gripper's yaw; jaw closing happens along the wrist's local x.
-- links 1 and 2, the jaws: thin boxes hanging from hinges at the wrist's bottom, on revolute joints
-  about the wrist's local -y and +y, so a positive angle opens either jaw (outwards along +x / -x).
-  Each jaw has its own collision shape, so contacts are reported per jaw.
-
-Drive (the design choice): the tool is kinematic in effect but moves through physics. A fixed
-constraint ties the shaft to a world frame; each action moves that frame (``changeConstraint``)
-along a straight line over a few physics steps, and the solver drags the shaft after it, so contacts
-with the object are simulated rather than teleported through. The wrist yaw and the jaws are joint
-motors in position control. No remote centre of motion: the shaft stays vertical (the reference's
-RCM only tilts it, which no observation or action here depends on).
-
-The commanded pose is the *pivot* (a fixed point on the tool axis, ``pivot_height`` above the closed
-jaw tips, where the gripper's observed points centre) and the yaw. The workspace bounds the closed
-jaw tips (``tip``), which therefore never go below the tray's top.
-"""
+Design notes: docs/architecture-notes.md, services/tasks/surgical/instrument.py."""
 
 from __future__ import annotations
 

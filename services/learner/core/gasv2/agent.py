@@ -22,8 +22,8 @@ from torch import Tensor, nn
 
 from services.learner.core.gasv2.action_features import DISCRETE_FEATURES
 from services.learner.core.gasv2.behaviour import (
-    Actor,
-    Critic,
+    LatentActor,
+    LatentCritic,
     behaviour_losses,
     start_states,
     update_slow_target,
@@ -41,7 +41,7 @@ BEHAVIOUR_METRICS = ("actor_loss", "critic_loss", "actor_entropy", "advantage", 
 class LatentPolicy(nn.Module):
     """What actors run: the encoder and RSSM posterior to track a latent state, and the actor."""
 
-    def __init__(self, encoder: Encoder, rssm: RSSM, actor: Actor) -> None:
+    def __init__(self, encoder: Encoder, rssm: RSSM, actor: LatentActor) -> None:
         super().__init__()
         self.encoder, self.rssm, self.actor = encoder, rssm, actor
 
@@ -70,7 +70,7 @@ def build_policy(cfg: DreamerConfig, seed: int = 0) -> LatentPolicy:
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         encoder = Encoder(cfg)
-        return LatentPolicy(encoder, RSSM(cfg, encoder.embed_dim), Actor(cfg))
+        return LatentPolicy(encoder, RSSM(cfg, encoder.embed_dim), LatentActor(cfg))
 
 
 def _optimizer(params: Iterable[nn.Parameter], lr: float, cfg: DreamerConfig) -> torch.optim.AdamW:
@@ -92,8 +92,8 @@ class GasV2Agent:
         with torch.random.fork_rng(devices=[]):  # seeded init without touching the caller's RNG
             torch.manual_seed(seed)
             self.world_model = WorldModel(cfg).to(self.device)
-            self.actor = Actor(cfg).to(self.device)
-            self.critic = Critic(cfg).to(self.device)
+            self.actor = LatentActor(cfg).to(self.device)
+            self.critic = LatentCritic(cfg).to(self.device)
         self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.policy = LatentPolicy(self.world_model.encoder, self.world_model.rssm, self.actor)
         self._params = {

@@ -27,13 +27,13 @@ class GasV2Config:
     """GASv2 (Surgical Grasp Any): a DreamerV2 world model with an imagination actor."""
 
     name: Annotated[str, tyro.conf.arg(name="algorithm")] = NAME
-    """gasv2 (these presets); equi_rsac and rsac start from the other presets."""
+    """gasv2 (equi_rsac and rsac: other presets)."""
     dreamer: DreamerConfig = field(default_factory=lambda: DREAMER_PRESETS["paper"])
     """GASv2's world model, actor and critic."""
     chunk_length: int = 6
-    """Observations per training window (GASv2: batch 100 x length 6)."""
+    """Observations per training window (GASv2: 6)."""
     observation: str = OBSERVATION
-    """What the policy sees: dsa, the surgical task's DSA image (its only observation)."""
+    """Policy images: dsa (the surgical task's only one)."""
 
     def __post_init__(self) -> None:
         if self.name != NAME:

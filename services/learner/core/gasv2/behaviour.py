@@ -37,7 +37,7 @@ from services.learner.core.gasv2.rssm import (
 from services.learner.core.gasv2.world_model import WorldModel, mlp
 
 
-class Actor(nn.Module):
+class LatentActor(nn.Module):
     """Features (..., F) -> logits (..., num_actions) of a categorical policy."""
 
     def __init__(self, cfg: DreamerConfig) -> None:
@@ -48,7 +48,7 @@ class Actor(nn.Module):
         return self.net(feat)
 
 
-class Critic(nn.Module):
+class LatentCritic(nn.Module):
     """Features (..., F) -> value (...)."""
 
     def __init__(self, cfg: DreamerConfig) -> None:

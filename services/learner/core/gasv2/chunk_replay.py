@@ -1,25 +1,7 @@
 """GASv2's replay: whole Surgical Grasp Any episodes in ``SequenceReplay``'s arena, sampled as
 fixed-length windows in DreamerV2's step convention (``chunks.ChunkBatch``).
 
-Storage is ``SequenceReplay``'s, configured for the task's DSA images: (3, 64, 64) uint8 codes with
-no constant channel, ``seq_len`` 80 (the task's step limit) and one state float per observation.
-``insert_episode`` stores an episode with two substitutions, so that sampling is one gather:
-
-* the replay's ``actions`` rows hold the world model's action *features*
-  (``action_features.features`` of the executed actions, toggle instead of jaw command), not the
-  executed actions; a checkpoint's ``actions`` array holds them too;
-* the state column holds each observation's ``controller_state`` (0 policy, 1 P-controller), decoded
-  from the image's state row (``services.observation.dsa.decode_state_rows``) at insert.
-
-Capacity, eviction (FIFO of non-demos, demonstrations and their augmented copies pinned), duplicate
-refusal and checkpoints (``state_dict``/``load_state_dict``) are the parent's.
-
-``sample_chunks`` draws episodes with replacement exactly as ``SequenceReplay.sample`` does
-(uniformly, or ``demo_fraction`` of them from the demonstration set), then one window per episode
-with its start ``t0`` uniform in ``[0, max(0, T + 1 - length)]``: observation ``t`` of the window is
-episode row ``t0 + t``; a window longer than the episode's ``T + 1`` observations starts at row 0 and
-is padded (zeros, ``mask`` False). A window never crosses an episode. Not thread-safe, like the parent.
-"""
+Design notes: docs/architecture-notes.md, services/learner/core/gasv2/chunk_replay.py."""
 
 from __future__ import annotations
 
@@ -114,7 +96,7 @@ _FIXED = {"constant_channels": (), "channels": CHANNELS, "state_dim": STATE_DIM}
 
 
 class ChunkReplay(SequenceReplay):
-    """``SequenceReplay`` of Surgical Grasp Any episodes that samples DreamerV2 windows (module docstring).
+    """``SequenceReplay`` of Surgical Grasp Any episodes that samples DreamerV2 windows (docs/architecture-notes.md).
 
     Args:
         capacity_transitions: stored transitions at most (raw and augmented copies alike).

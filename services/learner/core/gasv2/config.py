@@ -41,9 +41,9 @@ class DreamerConfig:
     channels: int = 3
     """Image channels (GASv2's DSA image: 3)."""
     action_dim: int = FEATURE_DIM
-    """Width of the world model's action input (``action_features``: 5)."""
+    """Width of the world model's action input (5)."""
     num_actions: int = 9
-    """The actor's discrete actions (``proto.discrete_actions``: 9)."""
+    """The actor's discrete actions (9)."""
     # RSSM ----------------------------------------------------------------------------------
     deter: int = 1024
     """GRU state width."""
@@ -54,39 +54,49 @@ class DreamerConfig:
     classes: int = 32
     """Classes of each categorical latent."""
     gru_norm: bool = True
-    """Layer norm inside the GRU cell (DreamerV2's ``GRUCell(norm=True)``)."""
+    """Layer norm inside the GRU cell (DreamerV2's)."""
     # image encoder / decoder and MLPs ------------------------------------------------------
     cnn_depth: int = 48
-    """Channels of the first encoder conv (doubling per layer) and of the decoder's last hidden one."""
+    """Channels of the first encoder conv (doubling per layer)."""
     encoder_kernels: tuple[int, ...] = (4, 4, 4, 4)
+    """Kernel of each stride-2 encoder conv."""
     decoder_kernels: tuple[int, ...] = (5, 5, 6, 6)
+    """Kernel of each stride-2 decoder deconv."""
     mlp_layers: int = 4
-    """Hidden layers of the reward, discount, actor and critic MLPs."""
+    """Hidden layers of the head, actor and critic MLPs."""
     mlp_units: int = 400
+    """Width of the hidden layers of those MLPs."""
     act: str = "elu"
+    """Activation of the convs and MLPs."""
     # world-model loss ----------------------------------------------------------------------
     kl_balance: float = 0.8
-    """Weight of the KL term that trains the prior (the rest trains the posterior)."""
+    """Share of the KL term that trains the prior."""
     kl_free: float = 0.0
     """Free nats: KL below this is not penalised."""
     kl_free_avg: bool = True
-    """Apply the free nats to the batch-mean KL (else per step)."""
+    """Free nats on the batch-mean KL (else per step)."""
     kl_scale: float = 1.0
+    """Weight of the KL term in the world-model loss."""
     pred_discount: bool = True
-    """Learn a discount (continue) head; else imagination never terminates."""
+    """Learn a discount (continue) head."""
     reward_transform: str = "tanh"
-    """Squashing of the rewards the reward head learns (DreamerV2's ``clip_rewards``)."""
+    """Squashing of the learnt rewards (clip_rewards)."""
     # optimisers (DreamerV2: Adam, eps 1e-5, clip 100, decoupled weight decay 1e-6) -----------
     model_lr: float = 1e-4
+    """Adam learning rate of the world model."""
     actor_lr: float = 8e-5
+    """Adam learning rate of the actor."""
     critic_lr: float = 2e-4
+    """Adam learning rate of the critic."""
     opt_eps: float = 1e-5
+    """Adam epsilon of every optimiser."""
     grad_clip: float = 100.0
     """Gradient clipping by global norm, per optimiser."""
     weight_decay: float = 1e-6
-    """DreamerV2's decay: every weight is multiplied by (1 - weight_decay) each step (not times lr)."""
+    """Decoupled weight decay per step (not times lr)."""
     # behaviour -----------------------------------------------------------------------------
     discount: float = 0.99
+    """Discount of the imagined returns."""
     lam: float = 0.95
     """Lambda of the lambda-returns."""
     horizon: int = 15
@@ -96,7 +106,7 @@ class DreamerConfig:
     slow_target_every: int = 100
     """Updates between slow-critic updates."""
     slow_target_fraction: float = 1.0
-    """Fraction of the way the slow critic moves to the critic at each of its updates (1: copy)."""
+    """Step of the slow critic towards the critic (1: copy)."""
 
     def __post_init__(self) -> None:
         self._check_architecture()

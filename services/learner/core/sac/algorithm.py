@@ -34,17 +34,15 @@ class SacConfig:
     """Recurrent SAC: its networks, hyperparameters and what its policy observes."""
 
     name: Annotated[str, tyro.conf.arg(name="algorithm")] = "equi_rsac"
-    """equi_rsac (C4/D4-equivariant, `--net.group c4|d4`), rsac (the non-equivariant twin, same widths)
-    or gasv2 (DreamerV2 world model + imagination actor; Surgical Grasp Any; `--preset gasv2...`)."""
+    """equi_rsac, rsac (non-equivariant) or gasv2."""
     net: NetConfig = field(default_factory=lambda: NET_PRESETS["paper"])
     """Network widths and symmetry group."""
     sac: SacSettings = SacSettings()
     """SAC hyperparameters."""
     observation: str = "voxel"
-    """What the policy sees: voxel (orthographic projection; EquiObs/MEA) or depth (rendered;
-    Equi-RSAC); dsa is the gasv2 presets'."""
+    """Policy images: voxel (EquiObs/MEA) or depth."""
     trim_batches: bool = True
-    """Pad each batch to its longest episode instead of seq_len (same losses, less work)."""
+    """Pad batches to their longest episode, not seq_len."""
 
     def __post_init__(self) -> None:
         if self.name not in GROUPS:

@@ -21,28 +21,21 @@ class SacSettings:
     target_entropy: float = -5.0
     """Target entropy (-action_dim)."""
     autotune_alpha: bool = True
-    """Tune alpha to reach the target entropy; else keep init_alpha."""
+    """Tune alpha to the target entropy."""
     bc_weight: float = 0.0
-    """Weight of a behaviour-cloning term in the actor loss: squared error between the policy's mean
-    action and the recorded action on demonstration transitions (0: off, the paper)."""
+    """Weight of a BC term in the actor loss (0: off)."""
     n_step: int = 1
-    """Critic targets from n-step returns (1: the one-step target of Equi-RSAC); see ``n_step_targets``."""
+    """n of the n-step critic targets (1: Equi-RSAC)."""
     return_bound: bool = False
-    """Critic targets no lower than the episode's observed discounted return-to-go (self-imitation /
-    optimality-tightening lower bound; valid for non-negative rewards): demonstrations and successes
-    carry their value back at once, instead of one bootstrap hop per target-network lag."""
+    """Critic targets no lower than the observed return-to-go."""
     share_encoder: bool = False
-    """The actor reads the critic's image encoder on detached features (SAC-AE / DrQ): one encoder
-    pass with gradients per update instead of two; the actor's loss never moves the encoder."""
+    """The actor reads the critic's image encoder (detached)."""
     bc_filter: bool = False
-    """Clone a demonstration action only where the target critic rates it above the policy's own
-    mean action (Q filter, Nair et al. 2018): where the critic knows better, RL overrules the clone."""
+    """Clone only demo actions the critic prefers."""
     bc_decay_updates: int = 0
-    """Decay bc_weight linearly to 0 over this many updates (0: constant)."""
+    """Decay bc_weight to 0 over these updates (0: off)."""
     actor_warmup_updates: int = 0
-    """Critic warm-up: for the first this many updates the SAC actor term and the temperature stay
-    still (BC, where on, still trains the actor), so the actor follows a critic that has had time to
-    rank actions instead of a fresh one (0: off, the paper)."""
+    """Updates before the actor term and alpha move."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.gamma <= 1.0:

@@ -11,47 +11,47 @@ from services.common import config
 # name -> (module, config class, help); each module has run(cfg) -> dict
 BENCHES: dict[str, tuple[str, str, str]] = {
     "transport": (
-        "services.bench.transport",
+        "mea_tools.bench.transport",
         "TransportBenchConfig",
         "wire codec and Zenoh transport speeds",
     ),
     "augment": (
-        "services.bench.augment",
+        "mea_tools.bench.augment",
         "AugmentBenchConfig",
         "augmented transitions/s per core including re-projection, and raw-in to augmented-out latency",
     ),
     "learner": (
-        "services.bench.learner",
+        "mea_tools.bench.learner",
         "LearnerBenchConfig",
         "gradient updates/s per preset, replay memory, weights publish -> loaded latency",
     ),
     "learning": (
-        "services.bench.learning",
+        "mea_tools.bench.learning",
         "LearningBenchConfig",
         "train EquiRSAC / EquiObs / MEA variants: success at budget, improvement timestep, AUC, wall time, curves",
     ),
     "imitation": (
-        "services.bench.imitation",
+        "mea_tools.bench.imitation",
         "ImitationBenchConfig",
         "behaviour cloning of N scripted demos into the run's actor: held-out success per N and training seed",
     ),
     "system": (
-        "services.bench.system",
+        "mea_tools.bench.system",
         "SystemBenchConfig",
         "raw vs full-stack env steps/s, augmenter and learner rates, weights publish -> loaded",
     ),
     "soak": (
-        "services.bench.soak",
+        "mea_tools.bench.soak",
         "SoakBenchConfig",
         "an hour of `mea run`: RSS of every service after warm-up and at the end (growth < 5%)",
     ),
     "tasks": (
-        "services.bench.tasks",
+        "mea_tools.bench.tasks",
         "TasksBenchConfig",
         "scripted-expert success, env steps/s and the transition prior per task",
     ),
     "serve": (
-        "services.bench.serve",
+        "mea_tools.bench.serve",
         "ServeBenchConfig",
         "inference server act() round trip and server time per actor preset, weights swap -> first action",
     ),

@@ -27,10 +27,9 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from proto.episode import Episode
-from proto.topics import EPISODES_RAW, WEIGHTS_ANNOUNCE, WEIGHTS_LATEST
-from proto.weights import WeightsBlob
-from services.bench.harness import (
+import tyro
+
+from mea_tools.bench.harness import (
     client_bus,
     finite,
     free_port,
@@ -40,15 +39,19 @@ from services.bench.harness import (
     stop_child,
     wait_alive,
 )
-from services.bench.report import emit
-from services.bench.transport_data import MB, SOURCE, make_blob, make_episode
-from services.bench.transport_peers import (
+from mea_tools.bench.report import emit
+from mea_tools.bench.transport_data import MB, SOURCE, make_blob, make_episode
+from mea_tools.bench.transport_peers import (
     INSTANCE,
     SERVER_SERVICE,
     SUB_SERVICE,
     subscriber_main,
     weights_server_main,
 )
+from proto.episode import Episode
+from proto.topics import EPISODES_RAW, WEIGHTS_ANNOUNCE, WEIGHTS_LATEST
+from proto.weights import WeightsBlob
+from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 
 VARIANTS = (("a", None), ("b", "uint8"), ("c", "float32"))  # (name, image dtype or no images)
 
@@ -287,8 +290,6 @@ def _meta(cfg: TransportBenchConfig, elapsed: float) -> dict[str, Any]:
 
 def run(cfg: TransportBenchConfig) -> dict:
     """Run all three measurements, print them (table or one JSON object) and return the result."""
-    from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
-
     started = time.monotonic()
     sections: dict[str, list[dict[str, Any]]] = {}
     _log("episode codec ...")
@@ -314,6 +315,4 @@ def run(cfg: TransportBenchConfig) -> dict:
 
 
 if __name__ == "__main__":
-    import tyro
-
     run(tyro.cli(TransportBenchConfig))

@@ -12,10 +12,14 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from mea_tools.audit.config import AuditConfig
+from mea_tools.audit.general import record_demos
+from services.actor.config import ActorConfig
+from services.actor.rollout import RolloutActor
 from services.augmenter.audit_surgical import (
     CHECKS,
     SurgicalAuditResult,
@@ -27,9 +31,6 @@ from services.augmenter.audit_surgical import (
 from services.augmenter.core.audit_metrics import PHASES
 from services.augmenter.core.mea_discrete import DiscreteCounts, mea_discrete_copies, phase_split
 from services.augmenter.core.pipeline import episode_seed
-
-if TYPE_CHECKING:
-    from services.bench.audit import AuditConfig
 
 KINDS = ("raw", "mea")
 ERRORS = (("pivot mm", "pivot_mm"), ("yaw deg", "yaw_deg"), ("jaw", "jaw_error"), ("object mm", "object_mm"))
@@ -106,16 +107,12 @@ def floor_rows(floor: list[SurgicalAuditResult], tol: SurgicalTolerance) -> list
 
 def run_surgical_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[str, Any]]:
     """Record oracle demonstrations, replay them (the floor) and their MEA copies; (sections, meta)."""
-    from services.actor.config import ActorConfig
-    from services.actor.rollout import Actor
-    from services.bench.audit import record_demos
-
     t_start = time.perf_counter()
     tol = SurgicalTolerance()
     settings = (
         cfg.mea_discrete if cfg.copies is None else dataclasses.replace(cfg.mea_discrete, copies=cfg.copies)
     )
-    actor = Actor(ActorConfig(task=cfg.task, policy="expert", seed_base=cfg.seed), "audit")
+    actor = RolloutActor(ActorConfig(task=cfg.task, policy="expert", seed_base=cfg.seed), "audit")
     env = actor.env
     timing: dict[str, float] = {}
     counts = DiscreteCounts()

@@ -34,10 +34,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import tyro
 
+from mea_tools.bench.harness import finite, free_port, host_meta, percentile, wait_alive
+from mea_tools.bench.report import emit
 from proto.actions import DELTA_THETA, DELTA_XYZ
 from proto.episode import Episode
 from proto.topics import EPISODES_AUGMENTED, EPISODES_RAW
+from services.augmenter.config import AugmenterConfig
 from services.augmenter.core.isometric import compose_with_mea
 from services.augmenter.core.pipeline import (
     AugmentSettings,
@@ -48,8 +52,10 @@ from services.augmenter.core.pipeline import (
     shared_rotation,
     with_images,
 )
-from services.bench.harness import finite, free_port, host_meta, percentile, wait_alive
-from services.bench.report import emit
+from services.augmenter.main import run as run_augmenter
+from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
+from services.common.config import ServiceConfig
+from services.common.runtime import die_with_parent
 
 TARGET_PER_CORE = 5_000.0
 """Augmented transitions/s per core this project requires (re-projection included)."""
@@ -281,11 +287,8 @@ def bench_throughput(cfg: AugmentBenchConfig) -> tuple[list[dict[str, Any]], lis
 
 def service_main(service_cfg) -> None:
     """Spawned child: the augmenter service itself (dies with the bench process)."""
-    from services.augmenter.main import run
-    from services.common.runtime import die_with_parent
-
     die_with_parent()
-    sys.exit(run(service_cfg))
+    sys.exit(run_augmenter(service_cfg))
 
 
 def _stop(proc) -> None:
@@ -300,10 +303,6 @@ def _stop(proc) -> None:
 
 
 def bench_latency(cfg: AugmentBenchConfig) -> list[dict[str, Any]]:
-    from services.augmenter.config import AugmenterConfig
-    from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
-    from services.common.config import ServiceConfig
-
     s = cfg.augment
     episodes = make_episodes(cfg, cfg.warmup + cfg.latency_episodes, offset=20_000)
     # what the service must send back for each episode (ids, in order), from the local pipeline
@@ -431,6 +430,4 @@ def run(cfg: AugmentBenchConfig) -> dict:
 
 
 if __name__ == "__main__":
-    import tyro
-
     run(tyro.cli(AugmentBenchConfig))

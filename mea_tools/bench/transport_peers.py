@@ -6,10 +6,10 @@ from __future__ import annotations
 import dataclasses
 import time
 
+from mea_tools.bench.harness import run_with_bus
+from mea_tools.bench.transport_data import SOURCE, make_blob
 from proto.topics import EPISODES_RAW, WEIGHTS_ANNOUNCE, WEIGHTS_LATEST
 from proto.weights import WeightsBlob
-from services.bench.harness import run_with_bus
-from services.bench.transport_data import SOURCE, make_blob
 
 SUB_SERVICE = "bench-transport-sub"
 SERVER_SERVICE = "bench-transport-weights"

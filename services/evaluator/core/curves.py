@@ -1,127 +1,38 @@
-"""Evaluation metrics and learning curves across seeds (numpy and stdlib only).
-
-Kept free of transport, metrics, storage and the simulator so that both the evaluator service and
-``mea plot`` (and their tests) use exactly the same definitions. The history file these curves are
-read from is ``services.evaluator.history``.
-
-Per episode
-    ``success`` (the episode terminated, i.e. the sparse reward fired), ``length`` H (env steps taken)
-    and the undiscounted ``ret``. The paper's grasp score is ``s_g = (H_max - H) / H_max`` on success
-    and 0 on failure, with ``H_max`` the time limit (50 steps): a faster success scores higher. (The
-    GASv2 evaluation code computes it in this order; the MEA paper prints the terms swapped.)
-
-Per evaluation
-    :func:`summarize` averages M episodes: success rate, mean return, mean length, mean grasp score.
-
-Improvement timestep (MEA paper, EquiObs ablation)
-    "the first step after which the mean success stays > 0". Defined here exactly as: order a run's
-    evaluations by ``env_steps``; the improvement timestep is the ``env_steps`` of the earliest
-    evaluation from which *every* evaluation up to the end of the run has ``success_rate > 0``.
-    It is ``None`` when the last evaluation has success 0 (including "never > 0") or there are no
-    evaluations. A single evaluation with success > 0 gives its own ``env_steps``. Applied to a
-    mean-over-seeds curve it is the paper's definition; :func:`improvement_timestep` takes any
-    (steps, values) pair.
-
-Area under the success curve (AUC)
-    :func:`success_auc`: the trapezoid-rule integral of the success rate over ``env_steps`` divided
-    by the evaluated range (last minus first evaluation's ``env_steps``), i.e. the mean success over
-    that range, in [0, 1] for success rates. Uneven spacing is weighted by the spacing; a single
-    evaluation (zero-width range) gives its own value; no evaluation gives ``None``. Points whose
-    value is NaN (a grid point no run covers) are left out. It summarises how early *and* how well a
-    run learns in one number, where success at the budget and the improvement timestep each see
-    one side.
-
-Curves across runs (seeds)
-    :func:`curve` turns a history into (env_steps, value) sorted by env_steps, dropping records with
-    unknown steps (< 0) and keeping only the last record of repeated env_steps. :func:`align` puts
-    several curves on a common grid (default: the union of all evaluation steps) either by *step-wise
-    hold* (the value of the last evaluation at or before the grid point: what the policy was known to
-    achieve) or by *linear interpolation* between evaluations; a grid point before a run's first or
-    after its last evaluation is NaN for that run, so no run is extrapolated. :func:`mean_std` then
-    reduces across runs, ignoring NaNs, with the number of runs contributing to each point.
+"""Learning curves across seeds (numpy and stdlib only): the improvement timestep, the area under
+the success curve, and curves put on a common env-step grid. Pure, so that the evaluator service and
+``mea plot`` (and their tests) use exactly the same definitions; the history file they read is
+``services.evaluator.history``, the scores of one episode and one evaluation ``services.episodes.scores``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
-from proto.episode import succeeded
-
-H_MAX = 50
-"""The tasks' time limit in steps (the paper's H_max)."""
-
 INTERPOLATIONS = ("hold", "linear")
 
-
 # --------------------------------------------------------------------------------------------
-# per episode and per evaluation
+# improvement timestep and area under the success curve
 # --------------------------------------------------------------------------------------------
 
-
-def grasp_score(success: bool, length: int, h_max: int = H_MAX) -> float:
-    """The paper's s_g = (H_max - H) / H_max on success, 0 on failure (clipped to [0, 1])."""
-    if h_max <= 0:
-        raise ValueError(f"h_max must be positive, got {h_max}")
-    if not success:
-        return 0.0
-    return float(min(1.0, max(0.0, (h_max - length) / h_max)))
-
-
-@dataclass(frozen=True)
-class EpisodeResult:
-    """What an evaluation keeps of one episode."""
-
-    success: bool
-    length: int
-    """H: env steps taken."""
-    ret: float
-    """Undiscounted return."""
-    seed: int | None = None
-
-
-def episode_result(
-    rewards: Sequence[float], terminated: Sequence[bool], seed: int | None = None
-) -> EpisodeResult:
-    """An episode's result from its per-step rewards and terminal flags (success = the last step terminated,
-    not with a negative reward: ``proto.episode.succeeded``)."""
-    if len(rewards) != len(terminated):
-        raise ValueError(f"{len(rewards)} rewards for {len(terminated)} terminal flags")
-    success = succeeded(terminated, rewards)
-    return EpisodeResult(success, len(rewards), float(np.sum(np.asarray(rewards, np.float64))), seed)
-
-
-@dataclass(frozen=True)
-class EvalSummary:
-    """One evaluation of one policy version over M episodes."""
-
-    episodes: int
-    success_rate: float
-    mean_return: float
-    mean_length: float
-    grasp_score: float
-    """Mean of s_g over the episodes (failures count as 0)."""
-
-
-def summarize(results: Sequence[EpisodeResult], h_max: int = H_MAX) -> EvalSummary:
-    """Average M episode results (M >= 1)."""
-    if not results:
-        raise ValueError("no episodes to summarize")
-    n = len(results)
-    return EvalSummary(
-        episodes=n,
-        success_rate=sum(r.success for r in results) / n,
-        mean_return=float(np.mean([r.ret for r in results])),
-        mean_length=float(np.mean([r.length for r in results])),
-        grasp_score=float(np.mean([grasp_score(r.success, r.length, h_max) for r in results])),
-    )
-
-
-# --------------------------------------------------------------------------------------------
-# improvement timestep
-# --------------------------------------------------------------------------------------------
+# Improvement timestep (MEA paper, EquiObs ablation):
+# "the first step after which the mean success stays > 0". Defined here exactly as: order a run's
+# evaluations by ``env_steps``; the improvement timestep is the ``env_steps`` of the earliest
+# evaluation from which *every* evaluation up to the end of the run has ``success_rate > 0``.
+# It is ``None`` when the last evaluation has success 0 (including "never > 0") or there are no
+# evaluations. A single evaluation with success > 0 gives its own ``env_steps``. Applied to a
+# mean-over-seeds curve it is the paper's definition; :func:`improvement_timestep` takes any
+# (steps, values) pair.
+#
+# Area under the success curve (AUC):
+# :func:`success_auc`: the trapezoid-rule integral of the success rate over ``env_steps`` divided
+# by the evaluated range (last minus first evaluation's ``env_steps``), i.e. the mean success over
+# that range, in [0, 1] for success rates. Uneven spacing is weighted by the spacing; a single
+# evaluation (zero-width range) gives its own value; no evaluation gives ``None``. Points whose
+# value is NaN (a grid point no run covers) are left out. It summarises how early *and* how well a
+# run learns in one number, where success at the budget and the improvement timestep each see
+# one side.
 
 
 def improvement_timestep(steps: Sequence[float], values: Sequence[float]) -> float | None:
@@ -146,7 +57,7 @@ def improvement_timestep(steps: Sequence[float], values: Sequence[float]) -> flo
 
 def success_auc(steps: Sequence[float], values: Sequence[float]) -> float | None:
     """Normalised area under a (steps, values) curve: the trapezoid rule on ``steps`` divided by the
-    evaluated range, i.e. the mean value over it (see the module docstring). ``None`` if empty."""
+    evaluated range, i.e. the mean value over it (see the comment above). ``None`` if empty."""
     s = np.asarray(steps, dtype=np.float64)
     v = np.asarray(values, dtype=np.float64)
     if s.shape != v.shape or s.ndim != 1:
@@ -178,6 +89,15 @@ def run_improvement_timestep(records: Iterable[Mapping], key: str = "success_rat
 # --------------------------------------------------------------------------------------------
 # curves across runs
 # --------------------------------------------------------------------------------------------
+
+# Curves across runs (seeds):
+# :func:`curve` turns a history into (env_steps, value) sorted by env_steps, dropping records with
+# unknown steps (< 0) and keeping only the last record of repeated env_steps. :func:`align` puts
+# several curves on a common grid (default: the union of all evaluation steps) either by *step-wise
+# hold* (the value of the last evaluation at or before the grid point: what the policy was known to
+# achieve) or by *linear interpolation* between evaluations; a grid point before a run's first or
+# after its last evaluation is NaN for that run, so no run is extrapolated. :func:`mean_std` then
+# reduces across runs, ignoring NaNs, with the number of runs contributing to each point.
 
 
 def curve(records: Iterable[Mapping], key: str = "success_rate") -> tuple[np.ndarray, np.ndarray]:
@@ -252,19 +172,13 @@ def mean_std(values: np.ndarray, ddof: int = 0) -> tuple[np.ndarray, np.ndarray,
 
 
 __all__ = [
-    "H_MAX",
     "INTERPOLATIONS",
-    "EpisodeResult",
-    "EvalSummary",
     "align",
     "common_grid",
     "curve",
-    "episode_result",
-    "grasp_score",
     "improvement_timestep",
     "mean_std",
     "run_improvement_timestep",
     "run_success_auc",
     "success_auc",
-    "summarize",
 ]

@@ -40,10 +40,29 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+import tyro
 
-from services.bench.harness import finite, free_port, host_meta, percentile, wait_alive
-from services.bench.report import emit
+from mea_tools.bench.harness import finite, free_port, host_meta, percentile, wait_alive
+from mea_tools.bench.report import emit
+from proto.inference import ActRequest, ResetRequest
+from proto.topics import SERVE_ACT, SERVE_RESET
+from proto.weights import WeightsBlob
+from services.common import run_key, weights_file
+from services.common.bus.base import Credentials
+from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
+from services.common.config import parse
+from services.common.runtime import die_with_parent
+from services.common.weights import WeightsServer
+from services.inference.adapter import SimRobot, observation_of, sim_limits
+from services.inference.config import PRESETS as SERVE_PRESETS
+from services.inference.config import ServeConfig
+from services.inference.core.sessions import InferenceCore, ServeSettings
 from services.inference.main import WEIGHTS_POLL_SECONDS
+from services.inference.main import main as serve_main
+from services.learner.core.networks import PRESETS as NET_PRESETS
+from services.learner.core.networks import build_actor
+from services.learner.core.policy import PolicySpec, actor_tensors
 
 TASK = "block_pull"
 SESSION = "bench-robot"
@@ -55,6 +74,7 @@ TARGET_MS = 10.0
 SECTION_ACT = (
     "act round trip (robot -> mea serve over Zenoh, sealed; server time includes the voxel projection)"
 )
+
 SECTION_LOCAL = "in process (InferenceCore.act, no transport), same observations"
 SECTION_SWAP = "weights swap (mea serve following the learner)"
 SECTION_SWAPS = "weights swap, each version"
@@ -90,15 +110,13 @@ class ServeBenchConfig:
     """Print exactly one JSON object on stdout instead of tables."""
 
     def __post_init__(self) -> None:
-        from services.learner.core.networks import PRESETS
-
         if self.requests < 1 or self.warmup < 0 or self.episode_steps < 1 or self.observations < 1:
             raise ValueError("requests, episode_steps and observations must be >= 1, warmup >= 0")
         if self.swaps < 0 or self.torch_threads < 1 or not self.timeout_s > 0:
             raise ValueError("swaps must be >= 0, torch_threads >= 1 and timeout_s > 0")
         for p in (*self.preset_list, self.swap_preset):
-            if p not in PRESETS:
-                raise ValueError(f"unknown preset {p!r}; choose from {sorted(PRESETS)}")
+            if p not in NET_PRESETS:
+                raise ValueError(f"unknown preset {p!r}; choose from {sorted(NET_PRESETS)}")
         if not self.preset_list and self.swaps == 0:
             raise ValueError("nothing to measure: no presets and no swaps")
 
@@ -122,8 +140,6 @@ def _ms(values: list[float], q: float) -> float:
 
 def collect_observations(n: int, seed: int):
     """``n`` real Block Pull observations (voxel: point clouds) under random actions, and the sim's limits."""
-    from services.inference.adapter import SimRobot, observation_of, sim_limits
-
     robot = SimRobot(TASK)
     try:
         env = robot.env
@@ -143,14 +159,8 @@ def collect_observations(n: int, seed: int):
 
 
 def make_blob(preset: str, version: int, seed: int):
-    import torch
-
-    from proto.weights import WeightsBlob
-    from services.learner.core.networks import PRESETS, build_actor
-    from services.learner.core.policy import PolicySpec, actor_tensors
-
     torch.manual_seed(seed)
-    spec = PolicySpec(PRESETS[preset])
+    spec = PolicySpec(NET_PRESETS[preset])
     actor = build_actor(spec.net)
     params = sum(p.numel() for p in actor.parameters())
     return WeightsBlob.create(version, "equi_rsac", RUN_ID, actor_tensors(actor), spec.to_json()), params
@@ -168,11 +178,8 @@ def serve_argv(endpoint: str, namespace: str, instance: str, key_file: Path, lim
 
 def serve_child(argv: list[str]) -> None:
     """Spawned: `mea serve ARGV` (its Zenoh session opens here), ended by SIGTERM or the parent's death."""
-    from services.common.runtime import die_with_parent
-    from services.inference.main import main
-
     die_with_parent()
-    raise SystemExit(main(argv))
+    raise SystemExit(serve_main(argv))
 
 
 def stop_server(proc) -> None:
@@ -190,12 +197,6 @@ def stop_server(proc) -> None:
 def served(cfg: ServeBenchConfig, files: dict[str, Path], instance: str, weights: str, services=("robot",)):
     """A `mea serve` child and, opened after it, one bus per ``services`` entry connected to it
     (authenticated as that service); yields the buses once the server's liveliness token is seen."""
-    from services.common import run_key
-    from services.common.bus.base import Credentials
-    from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
-    from services.common.config import parse
-    from services.inference.config import PRESETS, ServeConfig
-
     ctx = mp.get_context("spawn")
     key = run_key.load(files["key"])
     last: Exception | None = None
@@ -205,7 +206,7 @@ def served(cfg: ServeBenchConfig, files: dict[str, Path], instance: str, weights
         argv = serve_argv(
             endpoint, namespace, instance, files["key"], files["limits"], weights, cfg.torch_threads
         )
-        parse(ServeConfig, PRESETS, argv, "mea serve", "")  # a bad flag fails here, not in the child
+        parse(ServeConfig, SERVE_PRESETS, argv, "mea serve", "")  # a bad flag fails here, not in the child
         proc = ctx.Process(target=serve_child, args=(argv,), name=f"mea-serve-{instance}", daemon=True)
         buses: list[Any] = []
         try:
@@ -247,9 +248,6 @@ class Robot:
 
     def reset(self, deadline: float | None = None):
         """Start an episode; retries (until ``deadline``) while the server has no weights or no queryable yet."""
-        from proto.inference import ResetRequest
-        from proto.topics import SERVE_RESET
-
         deadline = deadline or time.monotonic() + self.timeout
         while True:
             req = ResetRequest(session=SESSION, task=TASK, created_at=time.time())
@@ -263,16 +261,12 @@ class Robot:
             time.sleep(0.02)
 
     def request(self, obs):
-        from proto.inference import ActRequest
-
         return ActRequest(session=SESSION, episode=self.episode, step=self.step, stamp=time.time(),
                           state=obs.state, executed=self.prev if self.step > 0 else None,
                           points=obs.points, point_counts=obs.point_counts)  # fmt: skip
 
     def act(self, obs):
         """(reply, round trip s) for one observation, stamped now."""
-        from proto.topics import SERVE_ACT
-
         req = self.request(obs)
         t0 = time.perf_counter()
         d = self.bus.call(SERVE_ACT, req, timeout=self.timeout, source=self.server)
@@ -319,11 +313,6 @@ def bench_preset(cfg: ServeBenchConfig, preset: str, observations, files: dict[s
 
 def bench_local(cfg: ServeBenchConfig, preset: str, blob, limits, observations) -> dict[str, Any]:
     """The same requests through ``InferenceCore.act`` in this process, and split into projection and policy."""
-    import torch
-
-    from proto.inference import ResetRequest
-    from services.inference.core.sessions import InferenceCore, ServeSettings
-
     previous = torch.get_num_threads()
     torch.set_num_threads(cfg.torch_threads)
     try:
@@ -368,8 +357,6 @@ def bench_local(cfg: ServeBenchConfig, preset: str, blob, limits, observations) 
 
 def bench_swap(cfg: ServeBenchConfig, observations, files: dict[str, Path]) -> list[dict[str, Any]]:
     """Per version: publish() -> the first ActReply carrying it, the client resetting before every act."""
-    from services.common.weights import WeightsServer
-
     instance = "serve-bench-follow"
     blobs = [make_blob(cfg.swap_preset, v, cfg.seed + v)[0] for v in range(1, cfg.swaps + 2)]
     rows = []
@@ -421,8 +408,6 @@ def bench_swap(cfg: ServeBenchConfig, observations, files: dict[str, Path]) -> l
 
 def write_files(cfg: ServeBenchConfig, directory: Path, limits, presets: tuple[str, ...]):
     """The run key, the limits file and one sealed weights file per preset; and the blobs and sizes."""
-    from services.common import run_key, weights_file
-
     files = {"key": directory / "run.key", "limits": directory / "limits.json"}
     key = run_key.create(files["key"])
     files["limits"].write_text(json.dumps({"default": dataclasses.asdict(limits)}))
@@ -435,8 +420,6 @@ def write_files(cfg: ServeBenchConfig, directory: Path, limits, presets: tuple[s
 
 
 def machine_row(cfg: ServeBenchConfig) -> dict[str, Any]:
-    import torch
-
     meta = host_meta()
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     return {"cores": meta["cpus"], "server torch threads": cfg.torch_threads,
@@ -494,6 +477,4 @@ def run(cfg: ServeBenchConfig) -> dict:
 
 
 if __name__ == "__main__":
-    import tyro
-
     run(tyro.cli(ServeBenchConfig))

@@ -25,8 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from services.bench.harness import free_port
-from services.bench.report import emit
+from mea_tools.bench.harness import free_port
+from mea_tools.bench.report import emit
+from mea_tools.bench.system import connect_to_run, stop_run
+from proto.topics import STATUS
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -133,9 +135,6 @@ def run(cfg: SoakBenchConfig) -> dict:
             "window_minutes": cfg.window_minutes,
         }
         return emit("soak", {"RSS growth after warm-up": rows}, measured={}, as_json=cfg.json, meta=meta)
-    from proto.topics import STATUS
-    from services.bench.system import connect_to_run, stop_run
-
     port = free_port()
     stack_dir = cfg.run_dir / f"stack-{int(time.time())}"  # a fresh run dir each soak: mea run reuses none
     cmd = [sys.executable, "-m", "services.cli", "run", *cfg.run_args, "--run-dir", str(stack_dir),

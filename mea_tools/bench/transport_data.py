@@ -3,15 +3,12 @@
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from proto.episode import Episode
 from proto.weights import WeightsBlob
-
-if TYPE_CHECKING:
-    from services.bench.transport import TransportBenchConfig
 
 MB = 1e6
 SOURCE = "bench-transport"
@@ -19,7 +16,16 @@ SOURCE = "bench-transport"
 SEGMENTS = ("gripper", "block", "goal")
 
 
-def make_episode(cfg: TransportBenchConfig, image_dtype: str | None, index: int = 0) -> Episode:
+class EpisodeShape(Protocol):
+    """What ``make_episode`` reads of the benchmark's config (``transport.TransportBenchConfig``)."""
+
+    seed: int
+    steps: int
+    points_per_segment: int
+    image_size: int
+
+
+def make_episode(cfg: EpisodeShape, image_dtype: str | None, index: int = 0) -> Episode:
     """A seeded, plausible episode: smooth gripper path, objects, point clouds, optional heightmaps."""
     rng = np.random.default_rng((cfg.seed, index))
     T, S, P, H = cfg.steps, len(SEGMENTS), cfg.points_per_segment, cfg.image_size

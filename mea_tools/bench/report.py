@@ -9,7 +9,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from services.bench.reference import ratios
+from mea_tools.bench.reference import ratios
 
 
 def _fmt(v: Any) -> str:

@@ -27,8 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from services.bench.harness import free_port, percentile
-from services.bench.report import emit
+from mea_tools.bench.harness import free_port, percentile
+from mea_tools.bench.report import emit
+from proto.topics import STATUS, WEIGHTS_ANNOUNCE
+from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 
 
 @dataclass(frozen=True)
@@ -53,7 +55,7 @@ def _log(msg: str) -> None:
 
 def raw_sim_main(task: str, index: int, seconds: float, results) -> None:
     try:
-        from services.tasks import EnvSettings, make_env
+        from services.tasks import EnvSettings, make_env  # deferred: pybullet; only children simulate
 
         env = make_env(task, EnvSettings())
         rng = np.random.default_rng(index)
@@ -91,8 +93,6 @@ def bench_raw(cfg: SystemBenchConfig) -> dict[str, Any]:
 def connect_to_run(port: int, proc: subprocess.Popen, timeout: float = 60.0):
     """A Zenoh client of the router inside a `mea run` subprocess, retried until it listens
     (bounded; fails at once if the launcher exits)."""
-    from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
-
     deadline = time.monotonic() + timeout
     while True:
         try:
@@ -150,8 +150,6 @@ class Collector:
 
 
 def bench_stack(cfg: SystemBenchConfig) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    from proto.topics import STATUS, WEIGHTS_ANNOUNCE
-
     port = free_port()
     cmd = [sys.executable, "-m", "services.cli", "run", "--task", cfg.task, "--actors", str(cfg.actors),
            "--demos", "2", "--env-steps", "0", "--no-follow-gate", "--listen", f"tcp/127.0.0.1:{port}",

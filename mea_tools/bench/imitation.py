@@ -35,8 +35,32 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pybullet as pb
+import torch
 
-from services.bench.report import emit
+from mea_tools.bench.report import emit
+from proto.episode import Episode
+from proto.weights import WeightsBlob
+from services.actor.config import EXPERTS
+from services.actor.rollout import RolloutActor
+from services.augmenter.core.pipeline import augment_episode
+from services.common import weights_file
+from services.common.config import ServiceConfig
+from services.episodes.scores import summarize
+from services.evaluator.config import EvaluatorConfig
+from services.evaluator.evaluation import EpisodeRunner
+from services.learner import init_actor
+from services.learner.config import learner_presets
+from services.learner.core.batch import to_batch
+from services.learner.core.imitation import Cloner, CloneSettings, held_loss
+from services.learner.core.networks import build_actor
+from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
+from services.learner.core.replay import SequenceReplay
+from services.plan import actor_config, augmenter_config, learner_config
+from services.run_config import RunConfig
+from services.tasks import GENERAL_TASKS, make_env
+from services.tasks.block_pull import HALF, PullExpert, block_yaw, footprint
+from services.variants import VARIANTS, variant
 
 HELD_EPISODES = 64
 """Episodes of the fixed batch the BC loss is read on (drawn once per clone with its own seed)."""
@@ -51,8 +75,7 @@ class ImitationBenchConfig:
     task: str = "block_pull"
     """Task: block_pull, block_pick or drawer_open."""
     variant: str = "equiobs"
-    """What the policy observes and how demos are copied, as `mea run --variant`: equiobs (voxel
-    projection, rotated copies), mea (the same plus MEA copies) or equirsac (rendered depth image)."""
+    """As `mea run --variant`: equiobs, mea or equirsac."""
     demos: tuple[int, ...] = (2, 20, 100)
     """Demonstrations cloned, one clone per value and training seed."""
     train_seeds: tuple[int, ...] = (0, 1)
@@ -62,18 +85,15 @@ class ImitationBenchConfig:
     batch: int = 16
     """Whole episodes per update."""
     rotations: int | None = None
-    """Rotated copies per demo (the augmenter's isometric copies, as `mea run --success-rotations`);
-    None: the learner preset's (cpu-small: 64)."""
+    """Rotated copies per demo; None: the learner preset's."""
     learner_preset: str = "cpu-small"
-    """Learner preset whose actor network (and sampling settings, Adam rate) is cloned into: the same
-    networks as `mea run --learner-preset`."""
+    """Learner preset whose actor network is cloned into."""
     eval_episodes: int = 50
     """Held-out evaluation episodes per clone (the evaluator's seeds from 1e9)."""
     run_seed: int = 0
     """The run seed whose demonstrations are cloned (`mea run --seed`)."""
     expert: str | None = None
-    """Scripted expert recording the demos: observable or privileged (``ActorConfig.expert``); None:
-    the one `mea run` records with."""
+    """Scripted expert: observable or privileged; None: mea run's."""
     out: Path | None = None
     """Write each clone's weights and result.json under DIR/d<N>-s<seed>/, and DIR/imitation.json."""
     threads: int = 1
@@ -82,11 +102,6 @@ class ImitationBenchConfig:
     """Print exactly one JSON object instead of tables."""
 
     def __post_init__(self) -> None:
-        from services.learner import init_actor
-        from services.learner.config import learner_presets
-        from services.tasks import GENERAL_TASKS
-        from services.variants import VARIANTS
-
         if self.task not in GENERAL_TASKS:
             raise ValueError(f"--task must be one of {', '.join(GENERAL_TASKS)}, not {self.task!r}")
         fits = [k for k, v in VARIANTS.items() if init_actor.supports(v.algorithm)]  # an actor to clone into
@@ -103,7 +118,6 @@ class ImitationBenchConfig:
             raise ValueError("--updates must be >= 0, --batch, --eval-episodes and --threads >= 1")
         if (self.rotations is not None and self.rotations < 0) or self.run_seed < 0:
             raise ValueError("--rotations and --run-seed must be >= 0")
-        from services.actor.config import EXPERTS
 
         if self.expert is not None and self.expert not in EXPERTS:
             raise ValueError(f"--expert must be one of {', '.join(EXPERTS)}, not {self.expert!r}")
@@ -118,8 +132,6 @@ class ImitationBenchConfig:
 
 def run_config(cfg: ImitationBenchConfig):
     """The `mea run` whose demos, augmentation and learner network are cloned."""
-    from services.run_config import RunConfig
-
     return RunConfig(task=cfg.task, variant=cfg.variant, learner_preset=cfg.learner_preset, seed=cfg.run_seed,
                      demos=max(cfg.demos), success_rotations=cfg.rotations)  # fmt: skip
 
@@ -128,15 +140,10 @@ def record_demos(run, n: int, expert: str | None = None) -> list:
     """The first ``n`` demonstrations `mea run` records (actor 0 of ``run``: its expert, seeds, styles
     and attempt cap; ``expert`` another of its experts), as the augmenter receives them (through the
     wire codec)."""
-    from proto.episode import Episode
-    from services.actor.rollout import Actor
-    from services.common.config import ServiceConfig
-    from services.plan import actor_config
-
     acfg = dataclasses.replace(actor_config(run, 0, ServiceConfig()), demos=n)
     if expert is not None:
         acfg = dataclasses.replace(acfg, expert=expert)
-    actor = Actor(acfg, "actor-0")
+    actor = RolloutActor(acfg, "actor-0")
     kept, attempts = [], 0
     while len(kept) < n and attempts < n * acfg.max_demo_attempts:
         b = actor.expert_episode(len(kept))
@@ -150,11 +157,6 @@ def record_demos(run, n: int, expert: str | None = None) -> list:
 def demo_replay(demos: list, run, learner) -> tuple[Any, dict[str, int]]:
     """A ``SequenceReplay`` of the learner's shape holding ``demos`` and every copy the run's augmenter
     makes of them, sized to fit them all; and its counts."""
-    from services.augmenter.core.pipeline import augment_episode
-    from services.common.config import ServiceConfig
-    from services.learner.core.replay import SequenceReplay
-    from services.plan import augmenter_config
-
     settings = augmenter_config(run, ServiceConfig()).augment
     per_demo = [
         1 + settings.isometric_count(d) + (settings.mea_count(d) if settings.applies_mea(d) else 0)
@@ -185,8 +187,6 @@ class BetweenBlocks:
     pulling line, within a block's width of their x). Read from the simulator after every step."""
 
     def __init__(self, env) -> None:
-        from services.tasks.block_pull import HALF, PullExpert
-
         self.env = env
         # PullExpert.PUSH_Z holds the closed tips about 1 cm above the floor
         self.low_z = 2 * float(HALF[2]) + PullExpert.PUSH_Z - 0.01
@@ -194,10 +194,6 @@ class BetweenBlocks:
         self.episodes = 0
 
     def step(self, _seconds: float) -> None:
-        import pybullet as pb
-
-        from services.tasks.block_pull import block_yaw, footprint
-
         env, task = self.env, self.env.task
         tcp = env.robot.tcp()
         poses = [
@@ -217,12 +213,6 @@ class BetweenBlocks:
 def evaluate(blob, task: str, depth_image: bool, episodes: int) -> dict[str, Any]:
     """``blob``'s deterministic policy on the evaluator's first ``episodes`` held-out seeds, in the
     evaluator's env through its ``EpisodeRunner``."""
-    from services.evaluator.config import EvaluatorConfig
-    from services.evaluator.core.metrics import summarize
-    from services.evaluator.evaluation import EpisodeRunner
-    from services.learner.core.policy import PolicyRuntime
-    from services.tasks import make_env
-
     ecfg = EvaluatorConfig(task=task, episodes=episodes, depth_image=depth_image)
     env = make_env(task, ecfg.env_settings())
     probe = BetweenBlocks(env) if task == "block_pull" else None
@@ -252,12 +242,6 @@ def _log(msg: str) -> None:
 def clone(replay, learner, seed: int, updates: int, batch: int, tag: str):
     """A fresh actor of ``learner``'s network (initialised as the learner initialises it with ``seed``)
     cloned for ``updates`` steps; (actor, BC loss on a fixed batch before and after, seconds)."""
-    import torch
-
-    from services.learner.core.batch import to_batch
-    from services.learner.core.imitation import Cloner, CloneSettings, held_loss
-    from services.learner.core.networks import build_actor
-
     torch.manual_seed(seed)  # as build_trainer: the actor is the first network drawn
     algo = learner.algorithm
     actor = build_actor(algo.net)
@@ -276,9 +260,6 @@ def clone(replay, learner, seed: int, updates: int, batch: int, tag: str):
 
 def clone_blob(actor, learner, run_id: str):
     """The clone as the learner publishes its actor: a ``WeightsBlob`` with the policy spec."""
-    from proto.weights import WeightsBlob
-    from services.learner.core.policy import PolicySpec, actor_tensors
-
     algo = learner.algorithm
     spec = PolicySpec(algo.net, algo.observation).to_json()
     return WeightsBlob.create(0, algo.name, run_id, actor_tensors(actor), spec)
@@ -313,13 +294,6 @@ def summary_rows(rows: list[dict]) -> list[dict]:
 
 
 def run(cfg: ImitationBenchConfig) -> dict:
-    import torch
-
-    from services.common import weights_file
-    from services.common.config import ServiceConfig
-    from services.plan import actor_config, learner_config
-    from services.variants import variant
-
     torch.set_num_threads(cfg.threads)
     rc = run_config(cfg)
     learner = learner_config(rc, Path("unused"), ServiceConfig())

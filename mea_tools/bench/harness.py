@@ -17,12 +17,11 @@ import queue
 import socket
 import time
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from services.common.bus.zenoh_bus import ZenohBus
+from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 
 
 def free_port() -> int:
@@ -34,8 +33,6 @@ def free_port() -> int:
 
 def client_bus(endpoint: str) -> ZenohBus:
     """A Zenoh client session of the router at ``endpoint`` (the deployed topology)."""
-    from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
-
     return ZenohBus(ZenohConfig(mode="client", connect=(endpoint,)))
 
 

@@ -1,48 +1,12 @@
-"""`mea bench learning`: the paper's comparison, trained here: success at the budget, improvement
-timestep and area under the success curve of EquiRSAC, EquiObs-EquiRSAC and MEA-EquiObs-EquiRSAC
-(optionally MEA on every episode), with statistics over seeds a reader can trust.
-
-Each (variant, seed) is one whole `mea run` (its own processes and Zenoh router on a free 127.0.0.1
-port, its own run directory ``OUT/<task>-<variant>-s<seed>``), one after another, so every run gets
-the machine to itself. Every arm runs the same seeds 0..n-1 (paired by seed). A run gets exactly
-`make run`'s recipe (``mea run --task T --demos 2`` and `mea run`'s defaults) plus the variant, seed,
-env-step budget and evaluation settings of the preset; only the ``paper`` preset changes the learner
-(``--learner-preset paper``). ``--protocol`` names a calibration against public numbers instead
-(``PROTOCOLS``: its data, arms, budget and seeds; its runs under ``OUT/<protocol>``).
-
-Per variant, from the runs' evaluation histories (``RUN_DIR/eval/history.jsonl``), with 95%
-stratified-bootstrap intervals over seeds from rliable (``services.bench.stats``):
-
-* success at budget: each run's evaluation at the budget (the first with ``env_steps >= budget``:
-  ``--final-eval-episodes`` held-out seeds); mean, IQM and std over seeds;
-* improvement timestep (the paper's: the first env-step count from which success stays > 0), mean
-  over the seeds that have one, and of the mean-over-seeds curve;
-* AUC: the area under each run's success curve, normalised by its evaluated env-step range
-  (``services.evaluator.core.metrics.success_auc``, in [0, 1]), mean over seeds;
-* against the first arm: rliable's probability of improvement, and "within noise" where the two
-  arms' intervals of the mean success at the budget overlap;
-* with a protocol: ours (mean and interval) beside the public reference at its env-step points;
-* wall time: the minutes the runs took (every `mea run` session of a run, resumed ones included,
-  is added up in ``RUN_DIR/bench-wall.json``), and the whole stack's training env steps per second
-  against the public Equi-RSAC training loop (one 11.1 s update per env step plus its env: about
-  0.065-0.09 env steps/s on a 2-core CPU);
-* ``curves-<task>.png`` (mean success vs env steps with its interval band per arm, and the
-  protocol's reference), ``profile-<task>.png`` (rliable performance profile of success at the
-  budget) and ``result-<task>.json``, all in the output directory.
-
-Resumable: a run whose history has an evaluation at the budget is reused (delete it to rerun); a run
-directory without one is continued with ``mea run --resume``. A run directory made with other
-settings (task, variant, seed, budget, demos, random steps, learner preset) is refused rather than
-mixed in.
-
-Presets: ``cpu-small`` (20K env steps, 3 seeds, the cpu-small learner `mea run` defaults to;
-evaluation every 1,000 env steps on 20 held-out seeds, 50 at the budget) and ``paper`` (40K env
-steps, 4 seeds, the paper learner preset, evaluation every 250 env steps; meant for a GPU
-workstation).
+"""`mea bench learning`: the paper's comparison trained here. EquiRSAC, EquiObs-EquiRSAC and
+MEA-EquiObs-EquiRSAC (optionally MEA on every episode), each seed one whole `mea run` after another:
+success at the budget, improvement timestep and area under the success curve, with stratified-bootstrap
+intervals over seeds a reader can trust; ``--protocol`` calibrates against public numbers instead.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -54,10 +18,15 @@ from typing import Any
 
 import numpy as np
 
-from services.bench import stats
-from services.bench.harness import free_port
-from services.bench.reference import PUBLIC_UPDATE_SECONDS
-from services.bench.report import emit
+from mea_tools.bench import stats
+from mea_tools.bench.harness import free_port
+from mea_tools.bench.reference import PUBLIC_UPDATE_SECONDS
+from mea_tools.bench.report import emit
+from services.common import config
+from services.evaluator.core.curves import align, common_grid, curve, improvement_timestep, success_auc
+from services.evaluator.history import HISTORY, read_history
+from services.evaluator.plot import PlotError, group_runs, load_run, summary_row
+from services.variants import check_task
 
 VARIANTS = {
     "equirsac": ["--variant", "equirsac"],
@@ -78,7 +47,7 @@ SURGICAL_PRESETS: dict[str, dict[str, Any]] = {
 """Surgical Grasp Any's settings per preset (the learner preset as ``PRESETS``). paper: the paper's
 Sec. VI (10 demos, 420K env steps, 20 evaluation rollouts every 10K, 3 seeds). cpu-small: 16K env
 steps took 40 minutes per run here, with seven evaluations of 20 episodes that mostly run to the
-80-step limit (README, "Benchmarks"); 3 seeds per arm, the fewest that give an interval."""
+80-step limit (docs/benchmarks.md); 3 seeds per arm, the fewest that give an interval."""
 
 PUBLIC_TRAINING_ENV_STEPS_PER_SECOND = (0.065, 1.0 / PUBLIC_UPDATE_SECONDS)
 """The public Equi-RSAC training loop on a 2-core CPU, env steps/s: one 11.1 s update per env step
@@ -134,17 +103,13 @@ class LearningBenchConfig:
     """Train the paper's variants and print success at budget, improvement timestep, AUC and wall time."""
 
     preset: str = "cpu-small"
-    """cpu-small (20K steps, 3 seeds, `mea run`'s learner; 2 CPU cores) or paper (40K steps, 4 seeds,
-    paper learner; GPU)."""
+    """cpu-small (20K steps, 3 seeds, CPU) or paper (40K, 4 seeds, GPU)."""
     task: str = "block_pull"
     """Task: block_pull, block_pick, drawer_open or surgical_grasp_any."""
     variants: tuple[str, ...] = ()
-    """Variants to train; empty: the paper's comparison for the task (equirsac, equiobs, mea; on
-    surgical_grasp_any gasv2, mea-gasv2). Add mea-all for MEA on every episode, beyond the paper."""
+    """Variants to train; empty: the paper's comparison for the task."""
     protocol: str = ""
-    """A calibration against public numbers instead of the preset (public80: 80 demos + 1,000 random
-    steps, equirsac and equiobs, 40K env steps, 2 seeds; public15: 15 demos, equiobs and mea, 25K env
-    steps, 3 seeds); its runs and results go to OUT/<protocol>. Other options still override it."""
+    """A calibration against public numbers: public80 or public15."""
     seeds: int = 0
     """Seeds per variant, the same seeds 0..n-1 for every variant (0: the preset's)."""
     env_steps: int = 0
@@ -172,6 +137,11 @@ class LearningBenchConfig:
     bootstrap_seed: int = 0
     """Seed of the bootstrap (the same seed and runs give the same intervals)."""
 
+
+# Presets: ``cpu-small`` (20K env steps, 3 seeds, the cpu-small learner `mea run` defaults to;
+# evaluation every 1,000 env steps on 20 held-out seeds, 50 at the budget) and ``paper`` (40K env
+# steps, 4 seeds, the paper learner preset, evaluation every 250 env steps; meant for a GPU
+# workstation).
 
 PRESETS: dict[str, dict[str, Any]] = {
     "cpu-small": {"env_steps": 20_000, "seeds": 3, "learner": None, "eval_every": 1_000, "eval_episodes": 20,
@@ -235,7 +205,6 @@ def settings(cfg: LearningBenchConfig) -> Settings:
     proto = PROTOCOLS.get(cfg.protocol)
     default_variants = proto.variants if proto else ("equirsac", "equiobs", "mea")
     variants = cfg.variants or TASK_VARIANTS.get(cfg.task, default_variants)
-    from services.variants import check_task
 
     for v in variants:
         try:
@@ -276,8 +245,6 @@ def run_dir_of(cfg: LearningBenchConfig, variant: str, seed: int) -> Path:
 
 
 def _history(run_dir: Path) -> list[dict]:
-    from services.evaluator.history import HISTORY, read_history
-
     path = run_dir / HISTORY
     return read_history(path) if path.exists() else []
 
@@ -293,6 +260,13 @@ def finished(run_dir: Path, budget: int) -> bool:
     return budget_record(_history(run_dir), budget) is not None
 
 
+# Each (variant, seed) is one whole `mea run` (its own processes and Zenoh router on a free 127.0.0.1
+# port, its own run directory ``OUT/<task>-<variant>-s<seed>``), one after another, so every run gets
+# the machine to itself. Every arm runs the same seeds 0..n-1 (paired by seed). A run gets exactly
+# `make run`'s recipe (``mea run --task T --demos 2`` and `mea run`'s defaults) plus the variant, seed,
+# env-step budget and evaluation settings of the preset; only the ``paper`` preset changes the learner
+# (``--learner-preset paper``). ``--protocol`` names a calibration against public numbers instead
+# (``PROTOCOLS``: its data, arms, budget and seeds; its runs under ``OUT/<protocol>``).
 def run_args(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> list[str]:
     """`mea run` arguments of a new run: `make run`'s recipe plus this run's variant, seed, budget and
     evaluation settings; the learner preset only where the benchmark's preset names one."""
@@ -306,6 +280,14 @@ def run_args(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> 
     return [*args, "--run-dir", str(run_dir_of(cfg, variant, seed)), *cfg.extra]
 
 
+def _mea_run():
+    """`mea run`'s config class and presets. Imported here: they pull in torch and pybullet, which this
+    process never needs otherwise (the runs are subprocesses)."""
+    from services.launcher import PRESETS, RunConfig  # deferred: torch and pybullet
+
+    return RunConfig, PRESETS
+
+
 CHECKED = ("task", "variant", "seed", "env_steps", "demos", "random_steps", "learner_preset")
 """What a reused or resumed run directory must have been made with (demos and random steps as
 resolved: None stands for the default it resolved to)."""
@@ -313,8 +295,7 @@ resolved: None stands for the default it resolved to)."""
 
 def _checked(values: dict[str, Any]) -> dict[str, Any]:
     """The ``CHECKED`` settings of a `mea run` config (as saved in config.json), defaults resolved."""
-    from services.launcher import RunConfig
-
+    RunConfig, _ = _mea_run()
     known = {
         k: values[k] for k in ("task", "variant", "learner_preset", "demos", "random_steps") if k in values
     }
@@ -326,6 +307,10 @@ def _checked(values: dict[str, Any]) -> dict[str, Any]:
     return {k: resolved.get(k, values[k]) for k in CHECKED if k in values}
 
 
+# Resumable: a run whose history has an evaluation at the budget is reused (delete it to rerun); a run
+# directory without one is continued with ``mea run --resume``. A run directory made with other
+# settings (task, variant, seed, budget, demos, random steps, learner preset) is refused rather than
+# mixed in.
 def check_existing(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> None:
     """Refuse a run directory that an earlier benchmark made with other settings (it would be reused
     or resumed with its own): a clear message instead of a mixed comparison."""
@@ -338,10 +323,7 @@ def check_existing(cfg: LearningBenchConfig, variant: str, seed: int, s: Setting
         return
     if not isinstance(saved, dict):
         return
-    from services.common import config
-    from services.launcher import PRESETS as RUN_PRESETS
-    from services.launcher import RunConfig
-
+    RunConfig, RUN_PRESETS = _mea_run()
     # what `mea run` would save for this run now, --extra included
     wanted_cfg = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, variant, seed, s), "mea run", "")
     want = _checked(config.to_jsonable(wanted_cfg))
@@ -415,8 +397,6 @@ def _ci(i: stats.Interval | None) -> list[float] | None:
 
 def run_row(variant: str, run_dir: Path, budget: int) -> dict[str, Any]:
     """One run's numbers from its history and wall-time file."""
-    from services.evaluator.core.metrics import curve, improvement_timestep, success_auc
-
     records = _history(run_dir)
     steps, success = curve(records)
     at = budget_record(records, budget)
@@ -435,8 +415,6 @@ def run_row(variant: str, run_dir: Path, budget: int) -> dict[str, Any]:
 
 def arm_band(dirs: list[Path], boot: stats.Bootstrap) -> stats.CurveBand | None:
     """An arm's runs on their union env-step grid (step-wise hold), reduced to mean and interval."""
-    from services.evaluator.core.metrics import align, common_grid, curve
-
     curves = [c for c in (curve(_history(d)) for d in dirs) if c[0].size]
     if not curves:
         return None
@@ -445,10 +423,10 @@ def arm_band(dirs: list[Path], boot: stats.Bootstrap) -> stats.CurveBand | None:
 
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # deferred: matplotlib, only where a figure is drawn
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # deferred: after the backend is chosen
 
     return plt
 
@@ -483,7 +461,7 @@ def render_curves(bands: dict[str, stats.CurveBand], reference: dict[str, dict[i
 def render_profile(profiles: dict[str, stats.Profile], png: Path, title: str) -> None:
     """rliable's performance-profile plot: fraction of runs with success at the budget > tau."""
     plt = _pyplot()
-    from rliable import plot_utils
+    from rliable import plot_utils  # deferred: matplotlib, only where a figure is drawn
 
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
     try:
@@ -530,6 +508,25 @@ def reference_rows(
     return rows
 
 
+# Per variant, from the runs' evaluation histories (``RUN_DIR/eval/history.jsonl``), with 95%
+# stratified-bootstrap intervals over seeds from rliable (``mea_tools.bench.stats``):
+#
+# * success at budget: each run's evaluation at the budget (the first with ``env_steps >= budget``:
+#   ``--final-eval-episodes`` held-out seeds); mean, IQM and std over seeds;
+# * improvement timestep (the paper's: the first env-step count from which success stays > 0), mean
+#   over the seeds that have one, and of the mean-over-seeds curve;
+# * AUC: the area under each run's success curve, normalised by its evaluated env-step range
+#   (``services.evaluator.core.curves.success_auc``, in [0, 1]), mean over seeds;
+# * against the first arm: rliable's probability of improvement, and "within noise" where the two
+#   arms' intervals of the mean success at the budget overlap;
+# * with a protocol: ours (mean and interval) beside the public reference at its env-step points;
+# * wall time: the minutes the runs took (every `mea run` session of a run, resumed ones included,
+#   is added up in ``RUN_DIR/bench-wall.json``), and the whole stack's training env steps per second
+#   against the public Equi-RSAC training loop (one 11.1 s update per env step plus its env: about
+#   0.065-0.09 env steps/s on a 2-core CPU);
+# * ``curves-<task>.png`` (mean success vs env steps with its interval band per arm, and the
+#   protocol's reference), ``profile-<task>.png`` (rliable performance profile of success at the
+#   budget) and ``result-<task>.json``, all in the output directory.
 def summarize(
     task: str,
     runs: dict[str, list[Path]],
@@ -546,10 +543,6 @@ def summarize(
     and wall time; ``against the first arm``: probability of improvement and the noise verdict;
     ``against the public reference`` with a protocol; ``runs``: one row per run; and the training
     loop (whole-stack env steps/s) against the public Equi-RSAC code."""
-    import dataclasses
-
-    from services.evaluator.plot import PlotError, group_runs, load_run, summary_row
-
     loaded = []
     for variant, dirs in runs.items():
         for d in dirs:
@@ -649,8 +642,7 @@ def run(cfg: LearningBenchConfig) -> dict:
     out = out_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     runs = {variant: [train(cfg, variant, seed, s) for seed in s.seed_list] for variant in s.variants}
-    from services.launcher import RunConfig
-
+    RunConfig, _ = _mea_run()
     learner = s.learner or f"{RunConfig().learner_preset} (mea run's default)"
     boot = stats.Bootstrap(reps=cfg.bootstrap_reps, seed=cfg.bootstrap_seed)
     sections = summarize(cfg.task, runs, s.budget, out, learner, boot, s.protocol)

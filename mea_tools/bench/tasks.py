@@ -19,8 +19,11 @@ import time
 
 import numpy as np
 
-from services.bench.report import emit
+from mea_tools.bench.report import emit
+from services.tasks import GENERAL_TASKS, make_env
 from services.tasks.experts import seed_for_style
+from services.tasks.prior import measure, summarise
+from services.tasks.surgical.settings import RandomisationSettings, SurgicalSettings
 
 STYLES = ("direct", "probe")
 
@@ -44,8 +47,6 @@ class TasksBenchConfig:
 
 
 def _expert_job(task: str, style: str, episodes: int, seed_base: int) -> dict:
-    from services.tasks import make_env
-
     env = make_env(task)
     success = touched = steps = 0
     fixed_bodies = None
@@ -73,9 +74,6 @@ def _expert_job(task: str, style: str, episodes: int, seed_base: int) -> dict:
 
 
 def _surgical_job(task: str, randomisation: bool, episodes: int, seed_base: int) -> dict:
-    from services.tasks import make_env
-    from services.tasks.surgical.settings import RandomisationSettings, SurgicalSettings
-
     env = make_env(task, SurgicalSettings(randomisation=RandomisationSettings(enabled=randomisation)))
     success = steps = controller_steps = 0
     t0 = time.perf_counter()
@@ -105,9 +103,6 @@ def _fixed_name(env) -> str:
 
 
 def _prior_job(task: str, episodes: int, seed_base: int) -> dict:
-    from services.tasks import make_env
-    from services.tasks.prior import measure, summarise
-
     env = make_env(task)
     samples = []
     for k in range(episodes):
@@ -117,8 +112,6 @@ def _prior_job(task: str, episodes: int, seed_base: int) -> dict:
 
 
 def run(cfg: TasksBenchConfig) -> dict:
-    from services.tasks import GENERAL_TASKS
-
     general = [t for t in cfg.tasks if t in GENERAL_TASKS]
     others = [t for t in cfg.tasks if t not in GENERAL_TASKS]
     ctx = mp.get_context("spawn")

@@ -35,9 +35,7 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
-from proto.episode import Episode
-from proto.weights import WeightsBlob
-from services.bench.harness import (
+from mea_tools.bench.harness import (
     client_bus,
     free_port,
     next_result,
@@ -46,18 +44,26 @@ from services.bench.harness import (
     stop_child,
     wait_alive,
 )
-from services.bench.reference import PUBLIC_UPDATE_SECONDS_BY_THREADS
-from services.bench.report import emit
+from mea_tools.bench.reference import PUBLIC_UPDATE_SECONDS_BY_THREADS
+from mea_tools.bench.report import emit
+from proto.discrete_actions import to_vector
+from proto.episode import Episode
+from proto.weights import WeightsBlob
+from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
+from services.common.weights import WeightsClient, WeightsServer
 from services.learner.config import PRESETS as LEARNER_PRESETS
 from services.learner.config import check_device, prepare_device
 from services.learner.core.batch import to_batch
+from services.learner.core.gasv2.agent import GasV2Agent
 from services.learner.core.gasv2.algorithm import GasV2Config
+from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
 from services.learner.core.networks import NetConfig, build_actor, build_critic
 from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.learner.core.privileged import STATE_DIM
 from services.learner.core.replay import SequenceReplay, public_reference_bytes
 from services.learner.core.sac.agent import RecurrentSAC
 from services.learner.core.sac.algorithm import SacConfig
+from services.observation.dsa import SURGICAL_GRASP_ANY, dsa_image_from_voxels
 
 CONSUMER = "bench-consumer"
 
@@ -221,9 +227,6 @@ def random_dsa_episode(
 ) -> Episode:
     """A raw surgical-like episode: random DSA codes with valid state rows (the controller drives the
     first ``APPROACH_STEPS`` steps with continuous actions, then discrete actions), a success at the end."""
-    from proto.discrete_actions import to_vector
-    from services.observation.dsa import SURGICAL_GRASP_ANY, dsa_image_from_voxels
-
     empty = np.zeros((0, 3), np.int64)
     rows = {c: dsa_image_from_voxels(empty, empty, SURGICAL_GRASP_ANY, gripper_state=0, fsm_state=0,
                                      controller_state=c)[2, -1] for c in (0, 1)}  # fmt: skip
@@ -250,9 +253,6 @@ def random_dsa_episode(
 def bench_gasv2_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
     """Each GASv2 preset's real update: ``batch_size`` windows of ``chunk_length`` drawn as the preset
     draws them (demo share), the world-model step, then imagination (horizon 15) and actor/critic steps."""
-    from services.learner.core.gasv2.agent import GasV2Agent
-    from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
-
     rng = np.random.default_rng(cfg.seed)
     replay = ChunkReplay(cfg.gasv2_episodes * SURGICAL_STEPS, seed=cfg.seed)
     for k in range(cfg.gasv2_episodes):
@@ -297,8 +297,6 @@ def bench_gasv2_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
 def bench_gasv2_replay(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
     """Bytes the GASv2 presets' window replays reserve (uint8 DSA rows stored once per observation),
     against float32 observations stored per transition with their next observation."""
-    from services.learner.core.gasv2.chunk_replay import ChunkReplay
-
     rows = []
     for preset in cfg.gasv2_presets:
         lc = LEARNER_PRESETS[preset]
@@ -330,8 +328,6 @@ def consumer_main(endpoint: str, instance: str, results) -> None:
 
 
 def _consume_weights(bus, instance: str, results) -> None:
-    from services.common.weights import WeightsClient
-
     torch.set_num_threads(1)
     client = WeightsClient(bus, timeout=10.0)
     bus.declare_alive(CONSUMER, instance)
@@ -352,9 +348,6 @@ def _consume_weights(bus, instance: str, results) -> None:
 
 
 def bench_weights(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
-    from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
-    from services.common.weights import WeightsServer
-
     ctx = mp.get_context("spawn")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = server_bus = None

@@ -1,37 +1,38 @@
-"""`mea audit`: record expert demonstrations, augment them as the augmenter does, replay every
-demonstration and copy through physics, and print how many transitions the simulator reproduces.
+"""`mea audit` on the general tasks (block_pull, block_pick, drawer_open): record expert
+demonstrations, augment them as the augmenter does, replay every demonstration and copy through
+physics, and count the transitions the simulator reproduces.
 
-Every kind the augmenter stores is audited (``audit_tables.KINDS``): raw demonstrations (the
-identity replays of the noise floor), isometric copies, MEA copies and MEA∘isometric copies, drawn
-exactly as the pipeline draws them (``services.augmenter.core.pipeline``). A copy that cannot be
-placed in the simulator is counted as *not simulable*, apart from valid and invalid. The noise
-floor (identity replays, teleported and rotated views) is measured first and printed beside the
-tolerance in use, with ``tolerance_covers_floor`` in the meta; the simulator's isotropy probe
-(``audit_isotropy``) is printed beside the rotated copies.
+Every kind the augmenter stores is audited (``tables.KINDS``): raw demonstrations (the identity
+replays of the noise floor), isometric copies, MEA copies and MEA∘isometric copies, drawn exactly as
+the pipeline draws them (``services.augmenter.core.pipeline``). A copy that cannot be placed in the
+simulator is counted as *not simulable*, apart from valid and invalid. The noise floor (identity
+replays, teleported and rotated views) is measured first and printed beside the tolerance in use,
+with ``tolerance_covers_floor`` in the meta; the simulator's isotropy probe (``audit_isotropy``) is
+printed beside the rotated copies.
 
-The replay itself is the augmenter's library (``services.augmenter.audit_physics``), what counts as
-valid its pure core (``services.augmenter.core.audit_metrics``); this module only orchestrates and
-reports.
+The replay itself is the augmenter's library (``services.augmenter.audit_physics``: the augmenter
+runs it on live copies with ``--audit-fraction``), what counts as valid its pure core
+(``services.augmenter.core.audit_metrics``); this module only orchestrates and reports.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from mea_tools.audit import tables as rep
+from mea_tools.audit.config import AuditConfig
 from proto.episode import Episode
+from services.actor.config import ActorConfig
+from services.actor.rollout import RolloutActor
 from services.augmenter.audit_isotropy import drag_isotropy, spread
 from services.augmenter.audit_physics import audit_episode, identity_replay, rotated_views, view_floor
 from services.augmenter.audit_placement import NotSimulableError, rotation_of
-from services.augmenter.core.audit_metrics import NON_TRIVIAL, AuditResult, AuditTolerance
+from services.augmenter.core.audit_metrics import NON_TRIVIAL, AuditResult
 from services.augmenter.core.isometric import compose_with_mea
-from services.augmenter.core.mea import MeaSettings
-from services.augmenter.core.mea_discrete import DISCRETE_MEA_TASKS, MeaDiscreteSettings
 from services.augmenter.core.pipeline import (
     AugmentStats,
     episode_seed,
@@ -39,77 +40,7 @@ from services.augmenter.core.pipeline import (
     kept_mea_copies,
     shared_rotation,
 )
-from services.bench import audit_tables as rep
-from services.bench.report import emit
-from services.common import config
-from services.tasks import TASK_CLASSES
-
-if TYPE_CHECKING:  # the env (pybullet) is imported only where run_audit builds one
-    from services.tasks.env import ManipulationEnv
-
-
-@dataclass(frozen=True)
-class AuditConfig:
-    """Record expert demonstrations, make their isometric, MEA and MEA∘isometric copies as the
-    augmenter does, replay every demonstration and copy through physics, and report how many
-    transitions the simulator reproduces, per kind (after measuring the noise floor)."""
-
-    task: str = "block_pull"
-    """Task: block_pull, block_pick, drawer_open or surgical_grasp_any (its own audit:
-    ``services.bench.audit_surgical``; the views, isometric and tolerance flags do not apply)."""
-    episodes: int = 10
-    """Successful expert demonstrations to augment (alternating probe/direct, as the actor)."""
-    copies: int | None = None
-    """MEA copies per demonstration; default the task's: 6 (the paper's Equi-RSAC setting), 200 for
-    surgical_grasp_any (``--mea-discrete.copies``, the paper's GASv2 setting)."""
-    isometric: int = 4
-    """Isometric copies per demonstration (each with its own angle, as the augmenter's)."""
-    mea_isometric: bool = True
-    """Also audit the MEA copies turned by their shared angle (G_t x G, what the augmenter stores)."""
-    seed: int = 0
-    """First demonstration seed, and the base seed of the group draws (as the augmenter's)."""
-    json: bool = False
-    """Print exactly one JSON object on stdout."""
-    max_attempts: int = 4
-    """Expert attempts per requested demonstration before giving up (only successes are kept)."""
-    views: int = 6
-    """Teleported views per demonstration for the noise floor."""
-    gripper_chamfer_mm: float | None = None
-    """Tolerance: gripper Chamfer distance (mm); default: the task's (1.25x its noise floor)."""
-    object_chamfer_mm: float | None = None
-    """Tolerance: object Chamfer distance (mm); default: the task's."""
-    gripper_surface_mm: float | None = None
-    """Tolerance: gripper points to the simulated surface (mm); default: the task's."""
-    object_surface_mm: float | None = None
-    """Tolerance: object points to the simulated surface (mm); default: the task's."""
-    jaw: float | None = None
-    """Tolerance: jaw opening difference (0..1); default: the task's."""
-    mea: MeaSettings = field(default_factory=MeaSettings)
-    """MEA settings audited (phases, group ranges, feasibility guards)."""
-    mea_discrete: MeaDiscreteSettings = field(default_factory=MeaDiscreteSettings)
-    """Discrete MEA settings audited for surgical_grasp_any (h_p, copies, C4 rate, workspace); its
-    tolerances are ``services.augmenter.audit_surgical.SurgicalTolerance``'s."""
-
-    def __post_init__(self) -> None:
-        if self.task not in TASK_CLASSES:
-            raise ValueError(f"--task must be one of {', '.join(sorted(TASK_CLASSES))}, not {self.task!r}")
-        if (
-            self.episodes < 1
-            or self.max_attempts < 1
-            or min(self.copies or 0, self.isometric, self.views) < 0
-        ):
-            raise ValueError("episodes and max_attempts must be >= 1; copies, isometric and views >= 0")
-
-    @property
-    def mea_copies(self) -> int:
-        """MEA copies per demonstration of a general task (``copies``, default 6)."""
-        return 6 if self.copies is None else self.copies
-
-    def tolerance(self, rotated: bool = False) -> AuditTolerance:
-        """The task's tolerance (``rotated``: for turned copies), with the values given here."""
-        base = AuditTolerance.for_task(self.task, rotated)
-        given = {f.name: getattr(self, f.name) for f in dataclasses.fields(AuditTolerance)}
-        return dataclasses.replace(base, **{k: v for k, v in given.items() if v is not None})
+from services.tasks import ManipulationEnv
 
 
 def record_demos(actor, episodes: int, max_attempts: int) -> tuple[list[Episode], int]:
@@ -153,19 +84,11 @@ def audit_copies(
     return results, skipped
 
 
-def run_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[str, Any]]:
-    """Record, measure the floor, augment and audit; returns (sections, meta) for ``emit``
-    (``surgical_grasp_any``: ``services.bench.audit_surgical``)."""
-    if cfg.task in DISCRETE_MEA_TASKS:
-        from services.bench.audit_surgical import run_surgical_audit
-
-        return run_surgical_audit(cfg)
-    from services.actor.config import ActorConfig
-    from services.actor.rollout import Actor
-
+def run_general_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[str, Any]]:
+    """Record, measure the floor, augment and audit; returns (sections, meta) for ``emit``."""
     t_start = time.perf_counter()
     tol, rtol = cfg.tolerance(), cfg.tolerance(rotated=True)
-    actor = Actor(ActorConfig(task=cfg.task, policy="expert", seed_base=cfg.seed), "audit")
+    actor = RolloutActor(ActorConfig(task=cfg.task, policy="expert", seed_base=cfg.seed), "audit")
     env = actor.env
     timing: dict[str, float] = {}
     try:
@@ -260,11 +183,4 @@ def run_audit(cfg: AuditConfig) -> tuple[dict[str, list[dict[str, Any]]], dict[s
     return sections, meta
 
 
-def main(argv: Sequence[str]) -> int:
-    cfg = config.parse(AuditConfig, {"default": AuditConfig()}, argv, "mea audit", AuditConfig.__doc__ or "")
-    sections, meta = run_audit(cfg)
-    emit("audit", sections, {}, cfg.json, meta)
-    return 0
-
-
-__all__ = ["AuditConfig", "audit_copies", "main", "record_demos", "run_audit"]
+__all__ = ["audit_copies", "record_demos", "run_general_audit"]
