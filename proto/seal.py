@@ -1,23 +1,7 @@
 """The authentication envelope: a message sealed with the run's key, bound to its key expression
 and to the service instance that sent it.
 
-A run's services share one secret key (``mea run`` creates it at run start, see
-``services/common/run_key.py``). With it, every payload on the bus is::
-
-    b"MEAS" | version u8 (=1) | key id (8 bytes) | sender length u8 | sender (ASCII) | MAC (32) | body
-
-``body`` is the message's usual msgpack encoding. ``sender`` is ``<service>/<instance>`` (e.g.
-``learner/learner-0``). ``key id`` is the first 8 bytes of ``sha256(b"mea-run-key-id\\0" + key)``:
-it names the key (so a message sealed by another run is reported as such), never reveals it.
-``MAC = HMAC-SHA256(key, header || len(key_expr) as u16 big-endian || key_expr || body)`` where
-``header`` is everything before the MAC. Binding the key expression means a sealed message cannot be
-moved to another topic or another sender's key; binding the sender lets consumers accept a topic
-only from the service kinds that may write it (``proto.topics.Topic.writers``).
-
-The trust boundary is the run: every holder of the key can seal as any of the run's services.
-Replaying a recorded sealed message is not prevented here; consumers tolerate it (versions only go
-up, episodes are deduplicated by id, gates and heartbeats carry their time).
-"""
+Design notes: docs/architecture-notes.md, proto/seal.py."""
 
 from __future__ import annotations
 

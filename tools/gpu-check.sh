@@ -40,6 +40,7 @@ OUT=${1:?usage: tools/gpu-check.sh OUTDIR}
 mkdir -p "$OUT" || exit 2
 OUT=$(cd "$OUT" && pwd)
 cd "$(dirname "$0")/.." || exit 2
+. tools/resources.sh
 DRY=${GPU_CHECK_DRY:-0}
 TOTAL=${GPU_CHECK_SECONDS:-450}
 SUMMARY=$OUT/summary.txt LOG=$OUT/steps.log
@@ -178,14 +179,7 @@ if [ "$duration" -lt 60 ]; then
   note "run          SKIPPED: ${duration} s left of the check's ${TOTAL} s"
 else
   rm -rf "$RUN_DIR"
-  echo "time,gpu_util_percent,gpu_memory_used_mib,host_memory_used_mib" >"$OUT/run-resources.csv"
-  (
-    while sleep 5; do
-      gpu=$(nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader,nounits 2>/dev/null | head -1)
-      echo "$(date +%T),${gpu:-,},$(free -m | awk '/^Mem:/{print $3}')"
-    done
-  ) >>"$OUT/run-resources.csv" &
-  sampler=$!
+  sample_resources "$OUT/run-resources.csv"
   STOP_SIGNAL=INT step run $((duration + 30)) "$OUT/run.log" "$PY" -m services.cli run --task block_pull \
     --variant equiobs "${run_args[@]}" --learner-device "$DEVICE" --no-record --metrics-port 0 \
     --run-dir "$RUN_DIR" --duration-seconds "$duration" --final-eval-seconds 60 --stop-grace-seconds 15

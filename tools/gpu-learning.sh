@@ -22,6 +22,7 @@ shift
 mkdir -p "$OUT" || exit 2
 OUT=$(cd "$OUT" && pwd)
 cd "$(dirname "$0")/.." || exit 2
+. tools/resources.sh
 DRY=${GPU_LEARNING_DRY:-0}
 SEEDS=${SEEDS:-0 1 2}
 ACTORS=${ACTORS:-4}
@@ -55,14 +56,7 @@ note "gpu-learning $(date -u +%FT%TZ): device=$DEVICE seeds=[$SEEDS] actors=$ACT
 note "git $(git rev-parse --short HEAD 2>/dev/null || echo '?'), $(git status --porcelain 2>/dev/null | wc -l) changed files"
 note "mea run ${args[*]} --learner-args=\"$LEARNER_ARGS\" --actors $ACTORS --learner-device $DEVICE"
 
-echo "time,gpu_util_percent,gpu_memory_used_mib,host_memory_used_mib" >"$OUT/resources.csv"
-(
-  while sleep 5; do
-    gpu=$(nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader,nounits 2>/dev/null | head -1)
-    echo "$(date +%T),${gpu:-,},$(free -m | awk '/^Mem:/{print $3}')"
-  done
-) >>"$OUT/resources.csv" &
-sampler=$!
+sample_resources "$OUT/resources.csv"
 
 pids=()
 port=17600

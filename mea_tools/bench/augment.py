@@ -1,27 +1,6 @@
 """`mea bench augment`: augmented transitions/s per core, and raw-in to augmented-out latency.
 
-Two measurements on this machine:
-
-1. **Throughput** (one process, one thread): ``augment_episode`` with the configured settings
-   (default: 4 isometric + 6 MEA copies, all re-projected to uint8 images) on seeded synthetic
-   raw demonstrations, reported as output transitions (raw included, as the learner receives
-   them) per wall second and per CPU second of the process (= per core). A second pass runs the
-   same steps stage by stage to break the time down: isometric copies, MEA math (backward pass,
-   observations, the shared rotation), re-projection; and, outside ``augment_episode``, what the
-   service adds per raw episode: decoding the raw message and encoding every output.
-2. **Latency** through the real service: a Zenoh router in this process on a free 127.0.0.1 port,
-   the augmenter (``services.augmenter.main.run``) in a spawned process, and a publisher and a
-   subscriber (clients of the router) in this process. Readiness is the augmenter's liveliness
-   token (it subscribes first), never a sleep. Raw episodes are published one at a time, each
-   from pre-encoded bytes; the latency of an episode runs from its publish call to the receipt
-   (decoded and validated, as the learner would) of its last output. Every output is checked
-   against the local pipeline (ids, order, count).
-
-Synthetic episodes need no simulator: the same shapes as the actors' (3 segments x 256 points,
-T drawn in [min_steps, max_steps], successful scripted demonstrations), a gripper pose that
-follows the actions exactly (MEA's free-motion check passes), and an approach from the reset
-height (pivot 0.39 m) that goes below L_z part-way, like the scripted experts.
-"""
+Design notes: docs/architecture-notes.md, mea_tools/bench/augment.py."""
 
 from __future__ import annotations
 

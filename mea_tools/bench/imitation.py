@@ -1,28 +1,7 @@
 """`mea bench imitation`: the imitation ceiling. Behaviour cloning of the run's recurrent actor on N
 scripted demonstrations, evaluated deterministically on the evaluator's held-out seeds.
 
-Everything is the run's own, derived from a ``RunConfig`` by ``services.plan`` as `mea run` derives
-its services: the demonstrations are the ones `mea run --demos N --seed S` records (actor 0's expert,
-its seed stream, styles alternating, failed attempts skipped, at most 4 attempts per demo), sent
-through the run's augmenter settings (``augment_episode``: the variant's observation and the
-rotated copies of each demo, ``--rotations`` or the learner preset's ``success_rotations``, plus MEA
-copies for ``--variant mea``) into the learner's ``SequenceReplay``; batches are drawn by its sampler
-and made tensors by ``to_batch``, and the loss is the learner's BC term (``sac.bc_loss`` via
-``services.learner.core.imitation``) on the preset's actor network. Evaluation is the evaluator's:
-its env settings, its held-out seeds (``EvaluatorConfig.seeds``: from 1e9), its ``EpisodeRunner``
-with the deterministic policy (tanh of the mean) loaded from a ``WeightsBlob``.
-
-The N values are prefixes of one demo stream (the run with --demos 2 records the first two of the
-stream the run with --demos 100 records), so each N's replay holds the first N demos.
-
-Per (N, training seed) it reports the success rate, for Block Pull how many episodes lowered the
-paddle between the two blocks (``BetweenBlocks``; a failure mode of clones that cannot tell which
-block moves), the BC loss on a fixed batch of the demos before and after, and the wall time; per N
-the mean ± std over training seeds. With ``--out DIR`` each clone is written as a weights file
-(``DIR/d<N>-s<seed>/weights/weights-00000000.blob``, unsealed; what `mea serve --weights` and
-`mea run --init-actor` take) beside its ``result.json``, and the whole result as
-``DIR/imitation.json`` (docs/imitation.md).
-"""
+Design notes: docs/architecture-notes.md, mea_tools/bench/imitation.py."""
 
 from __future__ import annotations
 

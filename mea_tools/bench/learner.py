@@ -1,25 +1,6 @@
 """`mea bench learner`: gradient updates per second per preset, replay size, weights publish -> loaded.
 
-Three measurements on this machine (``--device``: the CPU with torch's default threads unless
-``--threads``, or a CUDA GPU):
-
-1. **Updates**: for each preset (default ``paper`` C4 and D4, ``cpu-small`` C4, the non-equivariant
-   ``paper`` twin), a replay of random episodes (uint8 policy images, as the augmenter sends them; a
-   quarter are 16-step pinned demonstrations, the rest 50-step online episodes) and the preset's real
-   update: sample a batch of whole episodes as the preset does (demonstration share, trimming), build
-   tensors, critic + actor + alpha steps, soft target update. One warm-up update, then ``--updates`` timed
-   ones; the median is the figure, with p50/p99 in ms. On CUDA the batch is copied from pinned memory,
-   the update's statistics stay on the device (as in the learner), and the device is synchronised
-   only before and after each timed update. The ``paper`` C4 row on the CPU is the one compared with
-   the public code's 11.1 s per update (batch 32 x 50 steps, equivariant, 2 threads).
-2. **Replay memory** for 1e5 transitions (reserved bytes, computed for the real layout, and checked
-   against an allocated buffer of the same layout at a smaller capacity).
-3. **Weights latency**: a Zenoh router in this process on a free 127.0.0.1 port, the learner's
-   ``WeightsServer`` in this process, and ``--consumers`` consumer processes (spawned clients) that
-   poll their ``WeightsClient`` every millisecond and rebuild the actor in a ``PolicyRuntime``. The
-   latency of a version runs from ``WeightsBlob.create`` (export of the trained actor included) to
-   the consumer's first action with it; per preset, ``--versions`` versions, one at a time.
-"""
+Design notes: docs/architecture-notes.md, mea_tools/bench/learner.py."""
 
 from __future__ import annotations
 

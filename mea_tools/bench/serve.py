@@ -1,26 +1,6 @@
 """`mea bench serve`: act() latency of the real-robot inference server, and weights swap -> first action.
 
-Everything runs on this machine over 127.0.0.1, with the run's key (every request and reply sealed
-and checked, as in a deployment):
-
-1. **Observations**: a few hundred real Block Pull observations, collected once from the simulator
-   (``SimRobot`` + ``observation_of``, random actions in [-1, 1]^5): segmented point clouds, which the
-   server projects to the voxel policy's image (the server's time includes that projection).
-2. **Act latency** per actor preset: ``mea serve`` in a spawned process, pinned to a weights file
-   (``services.common.weights_file``, sealed), a limits file from ``sim_limits`` (nothing clamped),
-   Zenoh peer mode with multicast scouting off: the server listens on a free 127.0.0.1 port and this
-   process connects to it as a ``robot``. After its liveliness token is seen, one session is reset and
-   ``--requests`` act requests are sent one at a time (after ``--warmup``), a new episode every
-   ``--episode-steps``, each stamped at send time. Client round trip and the server's
-   ``ActReply.compute_seconds``; then the same requests through ``InferenceCore.act`` in this process
-   (no transport), and that split into the projection and the policy network.
-3. **Swap**: a server that follows the learner's announcements, a ``WeightsServer`` in this process
-   (authenticated as ``learner``) publishing versions; per version the time from ``publish()`` to the
-   first ``ActReply`` carrying it while the client resets and acts in a tight loop (a new version is
-   pinned at episode start, so the client resets before every act here).
-
-Target: the cpu-small preset's act round trip p99 under 10 ms.
-"""
+Design notes: docs/architecture-notes.md, mea_tools/bench/serve.py."""
 
 from __future__ import annotations
 

@@ -1,42 +1,7 @@
 """The physics audit: replay an augmented episode through the simulator and measure, step by step,
 how far the simulation is from what the copy claims.
 
-MEA claims that an augmented copy is what the simulator would have produced from the augmented
-initial state under the augmented actions. The audit tests that claim transition by transition:
-
-1. Put the simulator into the augmented initial state (``audit_placement.place``, through
-   ``ManipulationEnv.place_state``): ``env.reset(source.seed)`` (the same object placement and the
-   same hidden movable/fixed choice, both drawn from the seed), teleport the arm so that its pivot
-   is at ``aug.gripper_pose[0]`` (x, y, z, yaw) with the jaw at the recorded opening, and let the
-   world rest as many physics steps as ``env.reset`` does.
-2. Replay ``aug.actions`` step by step through ``env.step`` (IK, motors, contacts: real physics).
-3. Compare every simulated observation with the augmented one and judge each transition
-   (``services.augmenter.core.audit_metrics``: Chamfer and surface distances per segment, the jaw,
-   reward and termination, tolerances from the noise floor).
-
-A rotated copy is the source scene turned about a vertical axis; the gripper-centric observation
-is the same for every axis, so ``audit_placement`` picks the one that keeps the turned gripper
-path and objects inside the workspace, the arm's reach and the wrist's range, turns the sim's
-objects (and the arm's start pose) accordingly, then the actions are replayed as for MEA. A copy
-with no such placement is *not simulable* (``audit_placement.NotSimulableError``). Once objects
-slide, a turned scene's future is not the turned future in pybullet, whose friction depends on a
-body's yaw (``audit_isotropy``).
-
-The noise floor, measured by the same code on un-augmented data:
-
-* identity replays (``identity_replay``): each source demonstration replayed from its own recorded
-  first pose with its own actions (resampling noise, physics and tracking repeatability);
-* teleported views (``view_floor``): the recorded first observation moved by a rigid offset the way
-  physics says it moves (objects by -d in the gripper frame, the gripper turned by theta about its
-  pivot; no MEA code), against the simulator with the arm teleported there: how far the camera
-  pipeline itself (fixed views, occlusion, a world-aligned voxel grid) is from equivariant. A copy
-  cannot be judged more finely than this;
-* rotated views (``rotated_views``): turned objects move in the world, so the fixed cameras sample
-  them through other pixels and voxels: rotated copies are judged against their own floor.
-
-``audit_episode(env, aug, source, tol)`` is the entry point (the augmenter's background audit
-calls it given an env; ``mea audit``, ``mea_tools.audit``, reports on many).
-"""
+Design notes: docs/architecture-notes.md, services/augmenter/audit_physics.py."""
 
 from __future__ import annotations
 

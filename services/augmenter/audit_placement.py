@@ -1,33 +1,6 @@
 """Where the physics audit puts a copy's first state in the simulator, rotated copies included.
 
-Every audited episode starts from ``env.reset(source.seed)``: the source's objects where the
-recording had them and the same hidden movable/fixed choice. An MEA copy keeps those objects and
-only moves the arm (``place``). A rotated copy (``isometric``, ``mea+isometric``) is the same scene
-turned by its angle phi (``params["rotation"]``) about a vertical axis. Its privileged poses are
-turned about the workspace centre, but in the gripper-centric observation a turn about any vertical
-axis is the same copy (the axes differ by a world translation, which the observation does not
-see), so ``plan_placement`` chooses the translation that keeps the turned scene where this robot
-can act:
-
-* the wrist: the yaw the arm is commanded to follow (the first yaw plus the cumulative dtheta) and
-  the recorded yaws, turned by phi, must fit in [-YAW_LIMIT, YAW_LIMIT] on one 2 pi branch, since
-  the controller clips the commanded yaw there and a wrapped branch would be a different motion;
-* the box: every recorded pivot position inside the pivot bounds, every object position inside
-  the workspace (x, y), which bounds the translation to a box;
-* the reach: every recorded pivot pose reachable by the arm.
-
-Among the translations that fit, the one tried first keeps the copy's contact where the recording
-had it (``anchor_shift``: the turn is then about the mean pivot position of the steps in contact, or
-the last step if none), then a grid over the box from there outwards. The gripper-centric copy is
-the same for every choice, but the arm is not: contact outcomes (a paddle or jaw giving under
-load, a dragged block's slide) depend on the joint configuration, so the copy is played where the
-arm is as it was when the recording touched the objects.
-
-A copy for which no placement exists is *not simulable* (``NotSimulableError`` with the reason): the
-audit reports those apart, neither valid nor invalid. The scene is then moved rigidly: every body
-but the floor and the arm, as ``env.reset`` left it, gets ``x -> R(phi) x + shift`` and its
-orientation (and velocity) turned by phi about z; joint states (a drawer's opening) are kept.
-"""
+Design notes: docs/architecture-notes.md, services/augmenter/audit_placement.py."""
 
 from __future__ import annotations
 

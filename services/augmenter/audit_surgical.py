@@ -1,28 +1,7 @@
 """The physics audit of Surgical Grasp Any: replay each transition of an MEA copy in the simulator
 and check that it does what the copy claims.
 
-A discrete MEA copy (``services.augmenter.core.mea_discrete``) claims that, from its state at step
-t (the instrument's pivot moved by D_t, its yaw and jaw as recorded, the object where the source
-had it, fixed in the world), its action a_t brings the instrument to its state at t + 1, with the
-object staying put and the source's reward and termination. The audit tests that claim:
-
-* **Non-trivial transitions** (t < H_p, where the copy moved the instrument) one by one: the world
-  of the source's seed (the object on the tray where the seed placed it), the instrument placed with
-  its measured pivot at the copy's row t, yaw and jaw (``SurgicalGraspEnv.place_state``), then
-  ``env.step(a_t)`` with the policy in control (the action goes through the env's drive: a unit
-  moves 0.015 sim), compared with row t + 1: pivot, yaw, jaw opening and the object's position,
-  reward and ``terminated``. The world is built again only when a replay disturbed the object.
-* **Trivial and termination transitions** (t >= H_p: the copy's rows are the source's, the grasp
-  and the lift): a rollout from the copy's row H_p, placed as above, through every remaining action,
-  each step compared with the next row, since a grasped object cannot be placed by hand.
-
-The noise floor is the same replay of the un-augmented demonstrations (``audit_surgical`` of the
-source with its own phase split): placement, the drive's settling (a step ends within 0.2 mm sim of
-its goal, not at rest) and contacts. ``SurgicalTolerance`` holds the tolerances justified by it
-(``mea audit --task surgical_grasp_any`` prints both and ``tolerance_covers_floor``).
-
-Lengths are reported in real millimetres (sim units / 5 x 1000).
-"""
+Design notes: docs/architecture-notes.md, services/augmenter/audit_surgical.py."""
 
 from __future__ import annotations
 

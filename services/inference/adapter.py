@@ -1,35 +1,6 @@
 """What `mea robot` needs from an arm: the adapter contract, and the simulated arm that implements it.
 
-``RobotAdapter`` is the whole boundary between the inference client (``services.inference.robot``)
-and hardware. A real arm's bridge implements these five methods and nothing else of this project
-changes. The contract, for a dVRK PSM driven through its ROS interface (dvrk_ros / CRTK names; no
-ROS code lives in this project):
-
-* **Frames and units.** Every pose is the pivot of the gripper (the point the policy's gripper-centric
-  frame is centred on) in the arm's base frame (``PSM1_base``), in metres, with the yaw about the base
-  frame's vertical axis in radians. The bridge converts from the tool-tip frame it measures
-  (``/PSM1/measured_cp``, geometry_msgs/PoseStamped) with the fixed tip-to-pivot offset of its
-  instrument. Jaw opening is normalised, 0 closed .. 1 open (``/PSM1/jaw/measured_js``, rad, divided
-  by the open angle).
-* **Observation.** ``observe()`` returns ``RobotObservation``: the segmented point cloud in the
-  gripper-centric frame (world orientation, origin at the pivot; gripper segment first, then one per
-  object; fixed points per segment as ``Episode.points``) from the lab's perception, or the policy image
-  already projected, plus the pose and jaw above and the time the observation was taken.
-* **Command.** ``execute(action)`` gets the normalised action ``(jaw, dx, dy, dz, dtheta)`` that the
-  server's envelope let through and applies it once: target pivot = measured pivot +
-  ``Limits.metres_per_unit`` x (dx, dy, dz), target yaw = measured yaw + ``radians_per_unit`` x
-  dtheta, sent as one ``/PSM1/servo_cp`` goal; jaw >= 0 opens, < 0 closes (``/PSM1/jaw/servo_jp``).
-  It returns when the motion is done (or its own controller gave up) with what was actually executed.
-* **Hold.** ``hold(reason)`` may be called from another thread at any time (watchdog, e-stop, lost
-  server or operator): the arm must stop where it is and keep its jaw (dVRK: ``/PSM1/hold``) within
-  one control cycle, and ignore nothing else: the next ``execute`` resumes motion.
-* **Reset.** ``reset(seed)`` brings the scene to a start state (a human or a script on real hardware;
-  ``seed`` only matters in simulation) and returns the first observation.
-
-``SimRobot`` implements it on one of the project's pybullet tasks: the env *is* the arm, so `mea robot
---sim` exercises the same path a real bridge would, and its episodes can be compared with the
-evaluator's on the same seeds.
-"""
+Design notes: docs/architecture-notes.md, services/inference/adapter.py."""
 
 from __future__ import annotations
 

@@ -1,36 +1,7 @@
 """What the physics audit measures and when a transition counts as valid: pure arithmetic over
 point arrays, no simulator.
 
-A simulated observation is compared with the augmented one per segment (gripper, each object).
-Observed points are a random draw of P points from what the cameras see, so clouds have no
-point-to-point correspondence; they are compared as sets:
-
-* ``chamfer``: symmetric Chamfer distance (mean nearest-neighbour distance both ways, mm) between
-  the simulated observation and the augmented one, both P-point draws. The replay draws from a
-  sampling stream independent of the recording's, so this carries the sampling noise a policy
-  sees between two draws of the same state (~1-7 mm depending on the segment's size);
-* ``surface``: mean distance (mm) from the augmented points to everything the cameras see of the
-  segment in the simulation (the fused cloud before the draw). Sampling noise does not enter, so
-  it resolves millimetre errors the Chamfer distance hides;
-
-and the visibility of each segment (seen / unseen) and the jaw opening must agree. A transition
-t = (s_t, a_t, r_t, s_t+1) is valid when both of its observations are within tolerance on every
-segment, metric and the jaw, and the simulated reward and `terminated` flag equal the augmented
-ones (``observation_checks``, ``valid_transitions``). (`truncated` is a time limit on the env's step
-counter, not a property of the state; a copy cut to start later runs on a different clock, so it
-is not compared.)
-
-Transitions are grouped by MEA phase (``phases``): non-trivial (t < phase_split: the augmented
-part), trivial (phase_split <= t < T-1: the recorded actions from the recorded state at H_p) and
-termination (t = T-1). The privileged pivot pose error is recorded beside (``AuditResult``), never
-used for validity (the policy does not see it).
-
-Tolerances come from the noise floor, measured on un-augmented data (identity replays and
-teleported views, ``services.augmenter.audit_physics``): ``TASK_TOLERANCES`` holds 1.25x the
-largest free-space floor value per task, metric and kind of segment (gripper / objects), rounded
-up (the numbers are beside it); rotated copies are judged against their own floor
-(``TASK_ROTATED_TOLERANCES``).
-"""
+Design notes: docs/architecture-notes.md, services/augmenter/core/audit_metrics.py."""
 
 from __future__ import annotations
 

@@ -1,23 +1,7 @@
 """The learner's training step and replay-gate arithmetic, for any algorithm (``algorithm``): its
 replay, the rate limiter and its learner, nothing else.
 
-No transport, metrics or threads: the service (``services.learner.main``) calls these methods from
-its ingest thread (``insert``, ``gate``) and its training loop (``step``), and publishes or records
-what they return. The one concession to its threads is ``guard``: a context manager (the service's
-lock) held around every touch of the replay and the limiter, never around a gradient update, so an
-update never holds up ingest.
-
-Rate limiting (``rate_limiter.SampleToInsertRatio``)
-    Inserts are counted in raw env steps (augmented copies are not new experience) and samples in
-    updates. The learner trains only while updates <= samples_per_insert x env steps + slack, and
-    waits until ``min_steps`` env steps are in. The replay gate announces how many env steps it will
-    take in total before producers should wait (``allowed_steps``); it asks, it never drops.
-
-Devices
-    The learner may train on a GPU; the replay stays in host memory and each batch is copied to the
-    device. Reading an update's statistics there waits for the device, so with ``metrics_every``
-    N > 1 they stay on it (``MetricsWindow``) and are read as means every N updates.
-"""
+Design notes: docs/architecture-notes.md, services/learner/core/trainer.py."""
 
 from __future__ import annotations
 
