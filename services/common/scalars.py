@@ -21,6 +21,7 @@ TAG_PREFIXES = (
     ("updates_per_second", "perf/"),
     ("grad_norm", "diagnostics/"),
     ("bc_accept", "diagnostics/"),
+    ("crr_keep", "diagnostics/"),
     ("bc_weight", "diagnostics/"),
     ("q_rank_gap", "diagnostics/"),
     ("q_demo_minus_pi", "diagnostics/"),

@@ -30,6 +30,8 @@ from services.learner.core.sac.losses import (
     critic_loss,
     critic_targets,
     critique_demos,
+    crr_loss,
+    crr_weights,
     masked_mean,
     policy_outputs,
     soft_update,
@@ -49,6 +51,8 @@ class _Forward:
     """Critic targets y_t (B, L), no gradient."""
     critique: DemoCritique | None
     """The target critic's reading of the demonstrations (None without them)."""
+    target_feats: Tensor
+    """The target critic's features of the batch (no gradient)."""
     feats: Tensor | None
     """The critic's features with gradients, from a shared encoder's pass (None: ``critic_loss`` runs it)."""
     embedding: Tensor | None
@@ -144,7 +148,12 @@ class RecurrentSAC:
         # actor step: J_pi through the just-updated Q heads, plus the BC gradient; during a critic
         # warm-up the BC gradient alone (J_pi's gradient still measured)
         warm = self.updates >= s.actor_warmup_updates
-        pi_loss = actor_loss(self.critic, feats, batch, fwd.policy, alpha)
+        crr = s.actor_objective == "crr"
+        if crr:
+            weights = crr_weights(self.critic_target, fwd.target_feats, batch, fwd.policy.mean, s.crr_beta)
+            pi_loss = crr_loss(fwd.policy, batch, weights)
+        else:
+            pi_loss = actor_loss(self.critic, feats, batch, fwd.policy, alpha)
         pi_grads = _grads(pi_loss, self._actor_params)
         if warm or bc_grads:
             _apply(self.actor_opt, self._actor_params, pi_grads if warm else (), bc_grads)
@@ -152,7 +161,7 @@ class RecurrentSAC:
         # temperature step, then the target critic
         log_probs = fwd.policy.log_probs[:, :-1]
         a_loss = alpha_loss(self.log_alpha, log_probs, batch.mask, s.target_entropy)
-        if s.autotune_alpha and warm:
+        if s.autotune_alpha and warm and not crr:  # crr's actor has no entropy term to tune
             _step(self.alpha_opt, a_loss, [self.log_alpha])
         soft_update(self.critic_target, self.critic, s.tau)
         self.updates += 1
@@ -168,6 +177,8 @@ class RecurrentSAC:
             "entropy": -masked_mean(log_probs.detach(), batch.mask),
             "actor_grad_norm": _norm(pi_grads),
         }
+        if crr:
+            out["crr_keep"] = masked_mean(weights, batch.mask)
         if fwd.critique is not None:
             c = fwd.critique
             out |= {"bc_accept": c.accept, "q_rank_gap": c.rank_gap, "q_demo_minus_pi": c.pi_gap}
@@ -194,7 +205,7 @@ class RecurrentSAC:
         if s.return_bound:
             targets = bounded_targets(targets, batch, s.gamma)
         critique = critique_demos(self.critic_target, target_feats, batch, policy.mean)
-        return _Forward(policy, targets, critique, feats, embedding)
+        return _Forward(policy, targets, critique, target_feats, feats, embedding)
 
     def _bc_loss(self, batch: Batch, fwd: _Forward) -> Tensor:
         """J_bc on the demonstration transitions (those the Q filter keeps, with ``bc_filter``); with a

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+ACTOR_OBJECTIVES = ("sac", "crr")
+
 
 @dataclass(frozen=True)
 class SacSettings:
@@ -34,6 +36,11 @@ class SacSettings:
     """Clone only demo actions the critic prefers."""
     bc_decay_updates: int = 0
     """Decay bc_weight to 0 over these updates (0: off)."""
+    actor_objective: str = "sac"
+    """Actor loss: sac (follow the critic's action gradient) or crr (weighted likelihood of the
+    replayed actions the critic rates above the policy's own; Wang et al. 2020)."""
+    crr_beta: float = 0.0
+    """crr weights: 0 keeps an action where its advantage is > 0 (binary); > 0 weighs exp(A / beta), at most 20."""
     actor_warmup_updates: int = 0
     """Updates before the actor term and alpha move."""
 
@@ -50,6 +57,12 @@ class SacSettings:
             raise ValueError(f"n_step must be >= 1, got {self.n_step}")
         if self.bc_decay_updates < 0:
             raise ValueError(f"bc_decay_updates must be >= 0, got {self.bc_decay_updates}")
+        if self.actor_objective not in ACTOR_OBJECTIVES:
+            raise ValueError(
+                f"actor_objective must be one of {ACTOR_OBJECTIVES}, not {self.actor_objective!r}"
+            )
+        if self.crr_beta < 0:
+            raise ValueError(f"crr_beta must be >= 0, got {self.crr_beta}")
         if self.actor_warmup_updates < 0:
             raise ValueError(f"actor_warmup_updates must be >= 0, got {self.actor_warmup_updates}")
 

@@ -68,6 +68,17 @@ def tanh_gaussian_sample(
     return torch.tanh(u), (log_normal - log_jac).sum(-1)
 
 
+def tanh_gaussian_log_prob(mean: Tensor, log_std: Tensor, action: Tensor, bound: float = 0.999) -> Tensor:
+    """log pi(a) of a given action a = tanh(u) under the tanh-Gaussian (summed over the last axis);
+    a is clamped to +-``bound`` first, so recorded actions at the box's edge stay finite."""
+    log_std = log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
+    a = action.clamp(-bound, bound)
+    u = torch.atanh(a)
+    z = (u - mean) * torch.exp(-log_std)
+    log_normal = -0.5 * z.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+    return (log_normal - torch.log1p(-a.pow(2))).sum(-1)
+
+
 def deterministic_action(mean: Tensor) -> Tensor:
     """Evaluation action: tanh of the mean."""
     return torch.tanh(mean)
@@ -166,6 +177,30 @@ def actor_loss(
     """alpha log pi - min Q at the policy's own actions, on real transitions."""
     q1, q2 = critic.q(critic_features[:, :-1].detach(), policy.actions[:, :-1])
     return masked_mean(alpha * policy.log_probs[:, :-1] - torch.min(q1, q2), batch.mask)
+
+
+CRR_MAX_WEIGHT = 20.0
+"""Cap of exp(A / beta): one transition never outweighs the batch (Wang et al. 2020 cap at 20)."""
+
+
+def crr_weights(critic: nn.Module, feats: Tensor, batch: Batch, mean: Tensor, beta: float) -> Tensor:
+    """(B, L) weight of each replayed action, no gradient: with A = min Q(h, a) - min Q(h, tanh(mean)),
+    1[A > 0] (``beta`` 0) or min(exp(A / beta), ``CRR_MAX_WEIGHT``)."""
+    with torch.no_grad():
+        f = feats[:, :-1].detach()
+        adv = torch.min(*critic.q(f, batch.actions)) - torch.min(
+            *critic.q(f, torch.tanh(mean[:, :-1].detach()))
+        )
+        if beta == 0.0:
+            return (adv > 0).to(adv.dtype)
+        return torch.exp(adv / beta).clamp_max(CRR_MAX_WEIGHT)
+
+
+def crr_loss(policy: PolicyOutputs, batch: Batch, weights: Tensor) -> Tensor:
+    """-sum_t mask_t w_t log pi(a_t | h_t) / sum_t mask_t: the policy moves only towards replayed actions,
+    as far as the critic rates them (never along the critic's gradient into actions it has not seen)."""
+    log_probs = tanh_gaussian_log_prob(policy.mean[:, :-1], policy.log_std[:, :-1], batch.actions)
+    return -masked_mean(weights * log_probs, batch.mask)
 
 
 def bc_loss(mean: Tensor, batch: Batch, keep: Tensor | None = None) -> Tensor:
