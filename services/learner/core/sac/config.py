@@ -36,11 +36,14 @@ class SacSettings:
     """Clone only demo actions the critic prefers."""
     bc_decay_updates: int = 0
     """Decay bc_weight to 0 over these updates (0: off)."""
+    # crr (Wang et al. 2020): the weighted likelihood of replayed actions the critic rates above the
+    # policy's own mean action, so the actor never follows the critic's gradient into actions that
+    # no episode tried; crr_beta 0 keeps an action where its advantage is > 0, else weighs exp(A / beta)
     actor_objective: str = "sac"
-    """Actor loss: sac (follow the critic's action gradient) or crr (weighted likelihood of the
-    replayed actions the critic rates above the policy's own; Wang et al. 2020)."""
+    """Actor loss: sac (critic's action gradient) or crr (filtered likelihood)."""
     crr_beta: float = 0.0
-    """crr weights: 0 keeps an action where its advantage is > 0 (binary); > 0 weighs exp(A / beta), at most 20."""
+    """crr weights: 0 binary (A > 0), else exp(A / beta) capped at 20."""
+    # critic warm-up: BC (where on) still trains the actor meanwhile
     actor_warmup_updates: int = 0
     """Updates before the actor term and alpha move."""
 
