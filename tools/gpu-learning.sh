@@ -52,7 +52,7 @@ else
   defaults=(--env-steps 20000 --demos 2)
 fi
 args=(--task block_pull "${defaults[@]}" "$@")
-note "gpu-learning $(date -u +%FT%TZ): device=$DEVICE seeds=[$SEEDS] actors=$ACTORS seconds=$EACH cores=$(nproc)"
+note "gpu-learning $(date -u +%FT%TZ): device=$DEVICE seeds=[$SEEDS] actors=$ACTORS seconds=$EACH cores=$(getconf _NPROCESSORS_ONLN)"
 note "git $(git rev-parse --short HEAD 2>/dev/null || echo '?'), $(git status --porcelain 2>/dev/null | wc -l) changed files"
 note "mea run ${args[*]} --learner-args=\"$LEARNER_ARGS\" --actors $ACTORS --learner-device $DEVICE"
 
