@@ -27,6 +27,7 @@ from services.evaluator.evaluation import EpisodeRunner, Evaluation
 from services.evaluator.history import HISTORY, append_history, read_history
 from services.evaluator.metrics import evaluator_metrics
 from services.evaluator.video import FPS, Film
+from services.evaluator.video import missing_writer as missing_video_writer
 from services.evaluator.video import write as write_video
 from services.tasks import ManipulationEnv, make_env
 
@@ -75,6 +76,11 @@ class Evaluator:
             None if cfg.tensorboard_dir is None else ScalarLog(cfg.tensorboard_dir, 1, ctx.instance)
         )
         self.videos_dir = None if cfg.run_dir is None or cfg.videos == 0 else cfg.run_dir / "eval" / "videos"
+        why = None if self.videos_dir is None else missing_video_writer()
+        if why is not None:  # said once; evaluating goes on without videos
+            log.warning("evaluation videos off: no MP4 writer here (pip install imageio imageio-ffmpeg)",
+                        extra={"reason": why})  # fmt: skip
+            self.videos_dir = None
 
     def heartbeat_counters(self) -> dict[str, float]:
         """For the launcher table (the first four are shown); -1 means none yet / unknown."""

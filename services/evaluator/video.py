@@ -97,6 +97,18 @@ def check_out(path: Path) -> None:
         raise ValueError(f"--out {path}: is a directory")
 
 
+def missing_writer() -> str | None:
+    """Why MP4s cannot be written here (imageio or its ffmpeg binary absent), or None if they can."""
+    try:
+        import imageio.v2  # noqa: F401 - deferred like ``write``
+        import imageio_ffmpeg
+
+        imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError) as exc:
+        return f"{exc.__class__.__name__}: {exc}".splitlines()[0]
+    return None
+
+
 def write(path: Path, frames: Sequence[np.ndarray], fps: float = FPS) -> Path:
     """``frames`` (H, W, 3) uint8 as ``path``: MP4 (H.264, yuv420p) or GIF by its suffix, written
     beside it first and moved into place, so no half-written video is left behind."""
@@ -118,4 +130,4 @@ def write(path: Path, frames: Sequence[np.ndarray], fps: float = FPS) -> Path:
     return path
 
 
-__all__ = ["FORMATS", "Film", "check_out", "compose", "policy_view", "write"]
+__all__ = ["FORMATS", "Film", "check_out", "compose", "missing_writer", "policy_view", "write"]

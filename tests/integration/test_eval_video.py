@@ -113,3 +113,19 @@ def test_the_run_passes_its_video_and_tensorboard_settings(tmp_path):
     assert config_for(RunConfig(eval_videos=0), tmp_path, "evaluator", 0).videos == 0
     with pytest.raises(ValueError, match="--eval-videos must be >= 0"):
         RunConfig(eval_videos=-1)
+
+
+def test_without_an_mp4_writer_the_evaluator_says_so_once_and_films_nothing(tmp_path, monkeypatch, caplog):
+    import sys
+
+    from services.evaluator.video import missing_writer
+
+    assert missing_writer() is None  # this environment has imageio-ffmpeg
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # import fails, as where it is not installed
+    assert "imageio_ffmpeg" in missing_writer()
+    with caplog.at_level("WARNING"):
+        ev = _evaluator(tmp_path)
+    assert ev.videos_dir is None and ev._film(0, 0, at_budget=True) is None
+    assert [r.getMessage() for r in caplog.records if "videos off" in r.getMessage()] == [
+        "evaluation videos off: no MP4 writer here (pip install imageio imageio-ffmpeg)"
+    ]
