@@ -26,7 +26,7 @@ import sys
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Collection, MutableMapping, Sequence
+from collections.abc import Callable, Collection, Mapping, MutableMapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +41,8 @@ from services.common.bus.zenoh_bus import ZenohBus
 from services.common.mcap_io import SegmentedRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
-from services.plan import ChildSpec, check_init_actor, child_specs, restarted
-from services.run_config import PRESETS, RunConfig, read_resume, recording_metadata
+from services.plan import ChildSpec, check_init_actor, child_specs, describe, restarted
+from services.run_config import PRESETS, RunConfig, read_resume, recording_metadata, usable_cores
 from services.run_zenoh import router_config, secure
 from services.status_board import SUMMARY, StatusBoard, end_of_run, reached_env_steps, read_run_history
 from services.supervision import RestartPolicy, RestartSettings
@@ -304,6 +304,23 @@ def one_thread_per_child(environ: MutableMapping[str, str]) -> None:
         environ.setdefault(var, "1")
 
 
+def child_threads(environ: Mapping[str, str]) -> str:
+    """The thread pools each spawned service process gets (``one_thread_per_child``), for the plan,
+    naming those the environment sets."""
+    if not any(var in environ for var in CHILD_THREAD_VARS):
+        return "1 OpenMP, MKL and OpenBLAS thread per process (mea run's default)"
+    pools = ", ".join(f"{var} {environ[var]} (environment)" if var in environ else f"{var} 1"
+                      for var in CHILD_THREAD_VARS)  # fmt: skip
+    return f"{pools} per process"
+
+
+def log_plan(cfg: RunConfig, specs: Sequence[ChildSpec], environ: Mapping[str, str]) -> None:
+    """The run's plan, before anything starts: every instance with what it is given, the cores this
+    machine lends the run, and each process's thread pools (threads of this process: --in-process)."""
+    threads = "one process, a thread per instance" if cfg.in_process else child_threads(environ)
+    log.info("plan", extra={"instances": describe(specs), "cores": usable_cores(), "threads": threads})
+
+
 def _starter(cfg: RunConfig, router: Bus, shutdown: Shutdown) -> Callable[[ChildSpec], Any]:
     """How instances start: a spawned process over Zenoh, or a thread over the in-process bus."""
     if cfg.in_process:
@@ -403,7 +420,6 @@ def prepare(cfg: RunConfig, given: Collection[str] = ()) -> Prepared:
     except ValueError as exc:
         raise ValueError(f"--init-actor: {exc}") from None
     specs, missing = child_specs(cfg, run_dir)
-    _check_metrics_ports(cfg, specs)
     done = finished(cfg, run_dir) if cfg.resume is not None else ""
     return Prepared(cfg, run_dir, specs, missing, history, done)
 
@@ -451,7 +467,11 @@ def run(cfg: RunConfig | Prepared, given: Collection[str] = ()) -> int:
     if cfg.resume is not None:
         log.info("resuming", extra={"run_dir": str(run_dir), "resumes": cfg.resumes,
                                     "changed": json.dumps(p.history[-1]["changed"])})  # fmt: skip
-    try:  # before anything is written: a busy --listen port leaves no run directory behind
+    try:  # before anything is written: a taken /metrics or --listen port leaves no run directory
+        _check_metrics_ports(cfg, specs)
+    except ValueError as exc:
+        config.refuse("mea run", str(exc))
+    try:
         router = _router(cfg)
     except Exception as exc:  # noqa: BLE001 - zenoh raises ZError; turn it into a clear message
         config.refuse(
@@ -482,6 +502,7 @@ def run(cfg: RunConfig | Prepared, given: Collection[str] = ()) -> int:
     board = StatusBoard(specs, budget=cfg.env_steps, bus=router)
     procs: dict = {}
     failed = False
+    log_plan(cfg, specs, os.environ)  # before _starter gives the children their thread defaults
     start = _starter(cfg, router, shutdown)
     summary: dict = {}
     tracking = None

@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -204,6 +204,38 @@ def child_specs(
         instance = f"extra-{i}"
         specs.append(ChildSpec("test", instance, entry, argv=tuple(plugin_args(run, run_dir, instance))))
     return specs, missing
+
+
+def _torch_threads(n: int) -> str:
+    return "torch's default threads" if n == 0 else f"{n} torch thread{'s' if n > 1 else ''}"
+
+
+def _given(spec: ChildSpec) -> str:
+    """What an instance is given besides its process: the learner's device and torch threads, the
+    evaluator's torch threads (the others take the process's thread pools as they are)."""
+    if spec.service == "learner":
+        return f"{spec.config.device}, {_torch_threads(spec.config.threads)}"
+    if spec.service == "evaluator":
+        return _torch_threads(spec.config.torch_threads)
+    return ""
+
+
+def describe(specs: Sequence[ChildSpec]) -> str:
+    """The instances of a run in start order, with what each is given, on one line; a run of
+    instances given the same is one range: ``learner-0 (cuda, 1 torch thread), augmenter-0,
+    evaluator-0 (1 torch thread), actor-0..3``."""
+    groups: list[tuple[str, str, list[str]]] = []  # (service, given, instances)
+    for spec in specs:
+        given = _given(spec)
+        if groups and groups[-1][:2] == (spec.service, given):
+            groups[-1][2].append(spec.instance)
+        else:
+            groups.append((spec.service, given, [spec.instance]))
+    parts = []
+    for _, given, names in groups:
+        name = names[0] if len(names) == 1 else f"{names[0]}..{names[-1].rsplit('-', 1)[-1]}"
+        parts.append(f"{name} ({given})" if given else name)
+    return ", ".join(parts)
 
 
 def restarted(spec: ChildSpec, restarts: int) -> ChildSpec:

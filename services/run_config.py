@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import typing
 from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import typeguard
 
@@ -32,6 +34,30 @@ on the CPU budget of 16-20K env steps."""
 CPU_LEARNER_PRESETS = ("cpu-small", "cpu-small-state")
 WANDB_MODES = ("offline", "online")
 """Learner presets for two CPU cores: MEA on online successes too, 64 rotated copies of successes."""
+
+AUTO_RESERVED_CORES = 4
+"""Cores ``--actors auto`` leaves to the rest of the run: the learner, the augmenter, the evaluator and
+the launcher (the Zenoh router and the episode recorder)."""
+AUTO_MAX_ACTORS = 12
+"""``--actors auto`` never starts more: a 16-core workstation (the ``paper`` preset's machine) gets 12,
+and larger machines no more. Actors wait at the learner's replay gate (updates per env step), so past
+what the learner consumes more actors add host memory (three runs of 7 processes peaked at 14.3 GiB,
+docs/gpu.md) and older policies in the replay, not env steps."""
+
+
+def usable_cores() -> int:
+    """Cores this process may run on: its CPU affinity (what a container or ``taskset`` allows), else
+    the machine's count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # no affinity on this platform
+        return os.cpu_count() or 1
+
+
+def auto_actors(cores: int) -> int:
+    """``--actors auto`` on ``cores`` cores: one actor per core beyond ``AUTO_RESERVED_CORES``, at least
+    1 and at most ``AUTO_MAX_ACTORS`` (2 cores: 1; 16 cores: 12)."""
+    return max(1, min(AUTO_MAX_ACTORS, cores - AUTO_RESERVED_CORES))
 
 
 @dataclass(frozen=True)
@@ -76,8 +102,8 @@ class RunConfig:
     """How many times the run was resumed (set by --resume; moves the actors' seed streams on)."""
     init_actor: Path | None = None
     """Start the learner's actor from these weights (a fresh run only)."""
-    actors: int = 1
-    """Number of actor processes."""
+    actors: int | Literal["auto"] = 1
+    """Actor processes; auto: one per core beyond 4, 1 to 12 (saved as the number)."""
     random_steps: int | None = None
     """Env steps of random episodes after the demos; None: the preset's."""
     demos: int | None = None
@@ -161,8 +187,10 @@ class RunConfig:
         return self.mea_on or ("successes" if self.learner_preset in CPU_LEARNER_PRESETS else "demos")
 
     def __post_init__(self) -> None:
-        if self.actors < 0:
-            raise ValueError("actors must be >= 0")
+        if self.actors == "auto":  # resolved here once: config.json and every service see the number
+            object.__setattr__(self, "actors", auto_actors(usable_cores()))
+        if not isinstance(self.actors, int) or self.actors < 0:
+            raise ValueError(f"--actors must be >= 0 or auto, not {self.actors!r}")
         if self.restart_limit < 0 or self.restart_window_seconds <= 0:
             raise ValueError("restart_limit must be >= 0 and restart_window_seconds > 0")
         if min(self.recording_segment_bytes, self.recording_segment_seconds, self.recording_max_bytes) < 0:

@@ -1,17 +1,22 @@
 """`mea bench learning`: the paper's comparison trained here. EquiRSAC, EquiObs-EquiRSAC and
-MEA-EquiObs-EquiRSAC (optionally MEA on every episode), each seed one whole `mea run` after another:
-success at the budget, improvement timestep and area under the success curve, with stratified-bootstrap
-intervals over seeds a reader can trust; ``--protocol`` calibrates against public numbers instead.
+MEA-EquiObs-EquiRSAC (optionally MEA on every episode), each seed one whole `mea run` (one after
+another, or ``--parallel`` at once): success at the budget, improvement timestep and area under the
+success curve, with stratified-bootstrap intervals over seeds a reader can trust; ``--protocol``
+calibrates against public numbers instead.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -118,6 +123,8 @@ class LearningBenchConfig:
     """Demonstrations per run (0: the paper's, 2 and `make run`'s; 10 on surgical_grasp_any)."""
     actors: int = 1
     """Actor processes per run."""
+    parallel: int = 1
+    """Runs trained at once, each with its own router port and run dir (1: one after another)."""
     eval_every: int = 0
     """Evaluate every this many env steps (0: the preset's)."""
     eval_episodes: int = 0
@@ -186,6 +193,8 @@ def _check_options(cfg: LearningBenchConfig) -> None:
                 if getattr(cfg, n) < 0]  # fmt: skip
     if negative:
         raise _refuse(f"--{negative[0].replace('_', '-')} must be >= 0 (0: the preset's)")
+    if cfg.parallel < 1:
+        raise _refuse(f"--parallel must be >= 1, not {cfg.parallel}")
     if cfg.bootstrap_reps < 1:
         raise _refuse(f"--bootstrap-reps must be >= 1, not {cfg.bootstrap_reps}")
     unknown = set(cfg.variants) - set(VARIANTS)
@@ -262,7 +271,7 @@ def finished(run_dir: Path, budget: int) -> bool:
 
 # Each (variant, seed) is one whole `mea run` (its own processes and Zenoh router on a free 127.0.0.1
 # port, its own run directory ``OUT/<task>-<variant>-s<seed>``), one after another, so every run gets
-# the machine to itself. Every arm runs the same seeds 0..n-1 (paired by seed). A run gets exactly
+# the machine to itself; ``--parallel P`` trains up to P at once (``train_all``). Every arm runs the same seeds 0..n-1 (paired by seed). A run gets exactly
 # `make run`'s recipe (``mea run --task T --demos 2`` and `mea run`'s defaults) plus the variant, seed,
 # env-step budget and evaluation settings of the preset; only the ``paper`` preset changes the learner
 # (``--learner-preset paper``). ``--protocol`` names a calibration against public numbers instead
@@ -356,6 +365,31 @@ def _add_wall(run_dir: Path, seconds: float) -> None:
     tmp.replace(run_dir / WALL_FILE)
 
 
+class ListenPorts:
+    """Free 127.0.0.1 ports for the runs in flight, never one that another run of this benchmark was
+    given and may not have bound yet (its router starts seconds after the port is chosen)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._held: set[int] = set()
+
+    @contextlib.contextmanager
+    def hold(self) -> Iterator[int]:
+        with self._lock:
+            port = free_port()
+            while port in self._held:
+                port = free_port()
+            self._held.add(port)
+        try:
+            yield port
+        finally:
+            with self._lock:
+                self._held.discard(port)
+
+
+_PORTS = ListenPorts()
+
+
 def train(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> Path:
     run_dir = run_dir_of(cfg, variant, seed)
     if finished(run_dir, s.budget):
@@ -365,23 +399,53 @@ def train(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> Pat
         args = ["--resume", str(run_dir)]
     else:
         args = run_args(cfg, variant, seed, s)
-    cmd = [sys.executable, "-m", "services.cli", "run", *args, "--listen", f"tcp/127.0.0.1:{free_port()}",
-           "--metrics-port", "0", "--log-format", "json"]  # fmt: skip
-    _log(f"{run_dir.name}: training ({s.budget:,} env steps) ...")
-    t0 = time.monotonic()
-    run_dir.mkdir(parents=True, exist_ok=True)
-    with open(run_dir / "launcher.log", "a") as logf:
-        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=dict(os.environ))
-        try:
-            proc.wait(timeout=cfg.timeout_minutes * 60 or None)
-        except subprocess.TimeoutExpired:
-            proc.terminate()
-            proc.wait(60)
-            _log(f"{run_dir.name}: stopped after {cfg.timeout_minutes} min")
+    with _PORTS.hold() as port:
+        cmd = [sys.executable, "-m", "services.cli", "run", *args, "--listen", f"tcp/127.0.0.1:{port}",
+               "--metrics-port", "0", "--log-format", "json"]  # fmt: skip
+        _log(f"{run_dir.name}: training ({s.budget:,} env steps) ...")
+        t0 = time.monotonic()
+        run_dir.mkdir(parents=True, exist_ok=True)
+        with open(run_dir / "launcher.log", "a") as logf:
+            proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=dict(os.environ))
+            try:
+                proc.wait(timeout=cfg.timeout_minutes * 60 or None)
+            except subprocess.TimeoutExpired:
+                proc.terminate()
+                proc.wait(60)
+                _log(f"{run_dir.name}: stopped after {cfg.timeout_minutes} min")
     elapsed = time.monotonic() - t0
     _add_wall(run_dir, elapsed)
     _log(f"{run_dir.name}: exit {proc.returncode} after {elapsed / 60:.1f} min")
     return run_dir
+
+
+def train_all(cfg: LearningBenchConfig, s: Settings) -> dict[str, list[Path]]:
+    """Every (variant, seed) run, by variant: one after another, or up to ``--parallel`` at once,
+    seed by seed across the arms (an interrupted comparison then has every arm on the same seeds).
+    Each run keeps its own run directory, router port and wall time, reused or resumed as alone."""
+    if cfg.parallel == 1:
+        return {variant: [train(cfg, variant, seed, s) for seed in s.seed_list] for variant in s.variants}
+    jobs = [(variant, seed) for seed in s.seed_list for variant in s.variants]
+    workers = min(cfg.parallel, len(jobs))
+    _note_cores(cfg, workers)
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="bench-run")
+    try:
+        futures = {job: pool.submit(train, cfg, *job, s) for job in jobs}
+        return {
+            variant: [futures[(variant, seed)].result() for seed in s.seed_list] for variant in s.variants
+        }
+    finally:  # on Ctrl-C or a failure no new run starts; those in flight end as they would alone
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _note_cores(cfg: LearningBenchConfig, runs: int) -> None:
+    """Say when ``runs`` runs at once ask for more cores than this machine lends: they still run, slower."""
+    from services.run_config import AUTO_RESERVED_CORES, usable_cores  # deferred: torch and pybullet
+
+    processes, cores = runs * (cfg.actors + AUTO_RESERVED_CORES), usable_cores()
+    share = "; they share the cores, each run slower than alone" if processes > cores else ""
+    _log(f"{runs} runs at once: {processes} busy processes (actors, learner, augmenter, evaluator, "
+         f"launcher) on {cores} cores{share}")  # fmt: skip
 
 
 def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
@@ -641,7 +705,7 @@ def run(cfg: LearningBenchConfig) -> dict:
     started = time.monotonic()
     out = out_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
-    runs = {variant: [train(cfg, variant, seed, s) for seed in s.seed_list] for variant in s.variants}
+    runs = train_all(cfg, s)
     RunConfig, _ = _mea_run()
     learner = s.learner or f"{RunConfig().learner_preset} (mea run's default)"
     boot = stats.Bootstrap(reps=cfg.bootstrap_reps, seed=cfg.bootstrap_seed)
@@ -650,7 +714,7 @@ def run(cfg: LearningBenchConfig) -> dict:
             "seeds": s.seeds, "seed list (every arm)": list(s.seed_list), "demos": s.demos,
             "random_steps": s.random_steps, "learner": learner, "eval_every": s.eval_every,
             "eval_episodes": s.eval_episodes, "final_eval_episodes": s.final_eval_episodes,
-            "bootstrap": {"reps": boot.reps, "confidence": boot.confidence, "seed": boot.seed,
+            "parallel": cfg.parallel, "bootstrap": {"reps": boot.reps, "confidence": boot.confidence, "seed": boot.seed,
                           "method": "rliable stratified bootstrap, percentile"},
             "reference": None if s.protocol is None else s.protocol.reference_name,
             "curves_png": str(out / f"curves-{cfg.task}.png"), "profile_png": str(out / f"profile-{cfg.task}.png"),

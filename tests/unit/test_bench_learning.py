@@ -7,6 +7,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import subprocess
+import threading
+import time
 
 import pytest
 
@@ -310,6 +312,7 @@ def test_public80_trains_equirsac_and_equiobs_on_80_demos_and_1000_random_steps_
         ({"protocol": "public15", "preset": "paper"}, "leave --preset at cpu-small"),
         ({"seeds": -1}, "--seeds must be >= 0"),
         ({"bootstrap_reps": 0}, "--bootstrap-reps must be >= 1"),
+        ({"parallel": 0}, "--parallel must be >= 1, not 0"),
     ],
 )
 def test_bad_options_are_refused_in_one_line_before_anything_is_written(tmp_path, options, says):
@@ -390,3 +393,42 @@ def test_surgical_grasp_any_compares_gasv2_with_mea_gasv2_on_ten_demos(tmp_path)
         settings(LearningBenchConfig(task="surgical_grasp_any", variants=("mea",)))
     with pytest.raises(SystemExit, match="does not run on"):
         settings(LearningBenchConfig(task="block_pull", variants=("gasv2",)))
+
+
+def test_parallel_2_trains_two_runs_at_once_and_still_makes_the_comparison(tmp_path, monkeypatch):
+    out = tmp_path / "bench"
+    together = threading.Barrier(2, timeout=10)  # broken (an error) unless two runs are in flight at once
+    spans: dict[str, tuple[float, float]] = {}
+
+    def two_at_once(cfg, variant, seed, s):
+        t0 = time.monotonic()
+        together.wait()
+        run_dir = make_run(out, variant, seed, [(0, 0.0), (BUDGET, 0.2 + 0.4 * (variant == "mea"))])
+        spans[f"{variant}-{seed}"] = (t0, time.monotonic())
+        return run_dir
+
+    monkeypatch.setattr(learning, "train", two_at_once)
+    cfg = LearningBenchConfig(out=out, variants=("equiobs", "mea"), seeds=2, json=True, bootstrap_reps=REPS,
+                              parallel=2)  # fmt: skip
+    result = run(cfg)
+    assert sorted(spans) == ["equiobs-0", "equiobs-1", "mea-0", "mea-1"]
+    # seed by seed across the arms: both seed-0 runs were in flight together, then both seed-1 runs
+    (a0, a1), (b0, b1) = spans["equiobs-0"], spans["mea-0"]
+    assert max(a0, b0) < min(a1, b1)
+    rows = {r["variant"]: r for r in result["results"]["comparison"]}
+    assert list(rows) == ["equiobs", "mea"] and {r["seeds at budget"] for r in rows.values()} == {2}
+    assert rows["mea"]["success at budget (mean)"] == pytest.approx(0.6)
+    assert [r["run"] for r in result["results"]["runs"]] == [
+        "block_pull-equiobs-s0", "block_pull-equiobs-s1", "block_pull-mea-s0", "block_pull-mea-s1"]  # fmt: skip
+    assert result["meta"]["parallel"] == 2
+    assert (out / "curves-block_pull.png").read_bytes().startswith(PNG_MAGIC)
+
+
+def test_runs_in_flight_never_share_a_listen_port(monkeypatch):
+    offered = iter([7001, 7001, 7001, 7002, 7001])  # the OS may offer a port again before it is bound
+    monkeypatch.setattr(learning, "free_port", lambda: next(offered))
+    ports = learning.ListenPorts()
+    with ports.hold() as first, ports.hold() as second:
+        assert (first, second) == (7001, 7002)
+    with ports.hold() as again:  # released: free for the next run
+        assert again == 7001

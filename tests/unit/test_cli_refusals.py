@@ -67,7 +67,11 @@ REFUSED = [
         ["run", "--resume", "run", "--seed", "1", "--no-record"],
         "mea run: --record, --seed cannot change on --resume",
     ),
-    (["run", "--actors", "x"], "mea run: --actors INT: invalid literal for int() with base 10: 'x'"),
+    (
+        ["run", "--actors", "x"],
+        "mea run: --actors INT|{auto}: no type matching INT|{auto} could be instantiated",
+    ),
+    (["run", "--actors", "-1"], "mea run: --actors must be >= 0 or auto, not -1"),
     (["run", "--bogus"], "mea run: unrecognized option(s) --bogus (see mea run --help)"),
     (["run", "--preset", "nope"], "mea run: argument --preset: invalid choice: 'nope'"),
     (["serve", "--weights", "missing/run"], "mea serve: --weights missing/run: the path does not exist"),
@@ -95,7 +99,12 @@ def test_bad_input_is_one_line_naming_the_option_exit_2_and_nothing_on_disk_chan
 
 
 @pytest.mark.parametrize("offset", [0, 1])  # the launcher's own port, the learner's (base + 1)
-def test_a_taken_metrics_port_is_one_line_before_anything_starts(offset, here, capsys):
+def test_a_taken_metrics_port_is_one_line_before_anything_starts(offset, tmp_path, monkeypatch, capsys):
+    import services.launcher
+
+    here = tmp_path
+    monkeypatch.chdir(here)
+    monkeypatch.setattr(services.launcher, "_router", would_start)  # the check comes before the router
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
@@ -187,7 +196,10 @@ def test_pybullet_banner_never_reaches_the_terminal():
     out = subprocess.run([sys.executable, "-m", "services.cli", "run", "--actors", "x"], cwd=ROOT, env=env,
                          capture_output=True, text=True, timeout=120)  # fmt: skip
     assert out.returncode == 2 and out.stdout == ""
-    assert out.stderr == "mea run: --actors INT: invalid literal for int() with base 10: 'x'\n"
+    assert (
+        out.stderr
+        == "mea run: --actors INT|{auto}: no type matching INT|{auto} could be instantiated from ['x'].\n"
+    )
     # the banner is there to hide: pybullet imported on its own prints it
     raw = subprocess.run(
         [sys.executable, "-c", "import pybullet"], capture_output=True, text=True, timeout=120
