@@ -17,7 +17,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # `tests.helpers` must import here and in spawned children
     sys.path.insert(0, str(ROOT))
 
-pytest.register_assert_rewrite("tests.helpers.wire_asserts")  # detailed failures from its asserts
+# detailed failures from the shared assertions
+pytest.register_assert_rewrite(
+    "tests.helpers.wire_asserts", "tests.helpers.env_asserts", "tests.helpers.tiny_nets", "tests.helpers.cli"
+)
 
 from proto.episode import Episode  # noqa: E402
 from proto.weights import WeightsBlob  # noqa: E402
@@ -31,6 +34,18 @@ SEED = 20240611
 def free_port() -> Callable[[], int]:
     """A function returning a free TCP port on 127.0.0.1 (a different one on each call)."""
     return find_free_port
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread() -> Iterator[None]:
+    """Torch on one thread for a module's tests (``pytest.mark.usefixtures("one_torch_thread")``):
+    as the services run, and another thread count sums in another order (bit-for-bit comparisons)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture

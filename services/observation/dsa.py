@@ -12,6 +12,7 @@ import numpy as np
 from proto.episode import DSA_TASKS
 from services.observation.dsa_noise import camera_pose_noise, image_noise
 from services.observation.image_format import CODE_MAX, DTYPE
+from services.observation.projection import finite_float
 
 __all__ = [
     "CONTROLLER_STATES",
@@ -79,12 +80,7 @@ class DsaSpec:
                 raise ValueError(f"{name} must be an int, got {value!r}")
             object.__setattr__(self, name, int(value))
         for name in ("scale", "zoom", "window", "depth_offset"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-                raise ValueError(f"{name} must be a number, got {value!r}")
-            if not math.isfinite(value):
-                raise ValueError(f"{name} must be finite, got {value!r}")
-            object.__setattr__(self, name, float(value))
+            object.__setattr__(self, name, finite_float(name, getattr(self, name)))
         origin = tuple(float(v) for v in self.origin)
         if len(origin) != 3 or not all(math.isfinite(v) for v in origin):
             raise ValueError(f"origin must be 3 finite numbers, got {self.origin!r}")

@@ -24,6 +24,7 @@ __all__ = [
     "dequantize",
     "dequantize_depth",
     "depth_indices",
+    "finite_float",
     "observation_channels",
     "project",
     "project_batch",
@@ -40,6 +41,15 @@ _CHUNK_POINTS = 16384
 """`project_batch` handles frames in groups of about this many points (at least one frame)."""
 _AXIS_SIGN = np.array([[1.0], [1.0], [-1.0]])
 """Flips z so that the third voxel coordinate counts downward."""
+
+
+def finite_float(name: str, value: object) -> float:
+    """A settings field as a float: a finite real number (not a bool), else a ValueError naming it."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return float(value)
 
 
 @dataclass(frozen=True)
@@ -60,12 +70,7 @@ class ProjectionSpec:
             raise ValueError(f"size must be an int >= 2, got {self.size!r}")
         object.__setattr__(self, "size", int(self.size))
         for name in ("voxel", "z_top", "depth"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-                raise ValueError(f"{name} must be a number, got {value!r}")
-            if not math.isfinite(value):
-                raise ValueError(f"{name} must be finite, got {value!r}")
-            object.__setattr__(self, name, float(value))
+            object.__setattr__(self, name, finite_float(name, getattr(self, name)))
         if self.voxel <= 0:
             raise ValueError(f"voxel must be > 0, got {self.voxel}")
         if self.depth < self.voxel:

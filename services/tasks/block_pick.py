@@ -11,6 +11,7 @@ from services.tasks.env import ManipulationEnv, Task, workspace_xy_margin
 from services.tasks.experts import (
     Approach,
     Follower,
+    ObservableExpert,
     nearest_object,
     nearest_symmetric_yaw,
     object_positions,
@@ -132,7 +133,7 @@ class PickExpert:
         return a
 
 
-class ObservablePickExpert:
+class ObservablePickExpert(ObservableExpert):
     """The pick expert deciding from what it observes: ``act(obs)``.
 
     It grasps the cube nearest the gripper (``nearest_object``) as PickExpert grasps, then lifts
@@ -146,12 +147,7 @@ class ObservablePickExpert:
     LIFT_TRIES = 2  # lifting steps before a cube that has not risen is let go
 
     def __init__(self, env: ManipulationEnv) -> None:
-        self.env = env
-        self.follow = Follower(env)
-        self.approach = Approach(self.follow)
-        self.target: int | None = None  # slot of the cube acted on
-        self.phase = "above"
-        self.first = True  # still on the first cube (approached at a safe height)
+        super().__init__(env, "above")
         self.wait = 0
         self.tries = 0
         self.grasp_yaw: float | None = None  # frozen at the descent: never turn a held cube

@@ -20,6 +20,7 @@ from services.tasks.env import ManipulationEnv, Task
 from services.tasks.experts import (
     Approach,
     Follower,
+    ObservableExpert,
     moved,
     nearest_object,
     object_positions,
@@ -202,7 +203,7 @@ class PullExpert:
         return a
 
 
-class ObservablePullExpert:
+class ObservablePullExpert(ObservableExpert):
     """The pull expert deciding from what it observes: ``act(obs)``.
 
     It goes to the block nearest the gripper (``nearest_object``), lowers the paddle behind its far
@@ -213,12 +214,7 @@ class ObservablePullExpert:
     contacts; motion is measured against the block's position when the probe began."""
 
     def __init__(self, env: ManipulationEnv) -> None:
-        self.env = env
-        self.follow = Follower(env)
-        self.approach = Approach(self.follow)
-        self.target: int | None = None  # slot of the block acted on
-        self.phase = "travel"
-        self.first = True  # still on the first block (approached at a safe height)
+        super().__init__(env, "travel")
         self.known = False  # the target is known to be the movable block
         self.pushes = 0
         self.start: np.ndarray | None = None  # the target's observed position when its probe began

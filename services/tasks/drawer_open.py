@@ -19,6 +19,7 @@ from services.tasks.env import ManipulationEnv, Task
 from services.tasks.experts import (
     Approach,
     Follower,
+    ObservableExpert,
     moved,
     nearest_object,
     nearest_symmetric_yaw,
@@ -188,7 +189,7 @@ class DrawerExpert:
         return a
 
 
-class ObservableDrawerExpert:
+class ObservableDrawerExpert(ObservableExpert):
     """The drawer expert deciding from what it observes: ``act(obs)``.
 
     It grasps the handle of the drawer nearest the gripper (``nearest_object``) as DrawerExpert
@@ -199,12 +200,7 @@ class ObservableDrawerExpert:
     out by the opening), never from which drawer is locked or from contacts."""
 
     def __init__(self, env: ManipulationEnv) -> None:
-        self.env = env
-        self.follow = Follower(env)
-        self.approach = Approach(self.follow)
-        self.target: int | None = None  # slot of the drawer acted on
-        self.phase = "above"
-        self.first = True  # still on the first drawer (approached at a safe height)
+        super().__init__(env, "above")
         self.wait = 0
         self.grasp_yaw: float | None = None  # frozen at the descent: never turn while holding
         self.grasp_tip: np.ndarray | None = None  # tool centre at the grasp

@@ -45,6 +45,16 @@ SETTLE_STEPS = 10
 settle on the floor before the first observation."""
 
 
+def check_action(action: np.ndarray) -> np.ndarray:
+    """``action`` as ``ACTION_DIM`` floats, or a ValueError naming what is wrong with it."""
+    a = np.asarray(action, dtype=float)
+    if a.shape != (ACTION_DIM,):
+        raise ValueError(f"action: expected shape ({ACTION_DIM},) (jaw, dx, dy, dz, dtheta), got {a.shape}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"action: every component must be finite, got {a.tolist()}")
+    return a
+
+
 @dataclass(frozen=True)
 class EnvSettings:
     """Simulation, control and observation settings shared by every task."""
@@ -266,13 +276,7 @@ class ManipulationEnv:
     def step(self, action: np.ndarray) -> tuple[Observation, float, bool, bool, dict]:
         """One env step. An action that is not ``ACTION_DIM`` finite numbers is refused with a
         ValueError naming what is wrong, before anything (robot, physics, time) changes."""
-        a = np.asarray(action, dtype=float)
-        if a.shape != (ACTION_DIM,):
-            raise ValueError(
-                f"action: expected shape ({ACTION_DIM},) (jaw, dx, dy, dz, dtheta), got {a.shape}"
-            )
-        if not np.isfinite(a).all():
-            raise ValueError(f"action: every component must be finite, got {a.tolist()}")
+        a = check_action(action)
         _, _, clipped = self.robot.command(a)
         self.robot.settle(self.step_physics)
         self.t += 1

@@ -160,6 +160,19 @@ def moved(obs, slot: int, start: np.ndarray) -> bool:
     return bool(np.linalg.norm(object_positions(obs)[slot] - start) >= MOVED)
 
 
+class ObservableExpert:
+    """What every observable expert (``act(obs)``) keeps: its follower and approach, the slot of the
+    object it acts on (None until chosen, ``nearest_object`` first) and its phase."""
+
+    def __init__(self, env, phase: str) -> None:
+        self.env = env
+        self.follow = Follower(env)
+        self.approach = Approach(self.follow)
+        self.target: int | None = None  # slot of the object acted on
+        self.phase = phase
+        self.first = True  # still on the first object (approached at a safe height)
+
+
 def layout_style(env, obs) -> str:
     """The demonstration style a layout gives the observable expert: ``probe`` where the object
     nearest the gripper at reset is the immovable one (the expert probes it, sees no motion and

@@ -43,9 +43,45 @@ def _check_render_mode(render_mode: str | None) -> str | None:
     return render_mode
 
 
-class MeaTaskEnv(gym.Env):
-    metadata = METADATA
+class _SimGymEnv(gym.Env):
+    """The gymnasium side of a task's ``sim``: reset, step, render and close; a subclass says what it
+    observes (``_obs``) and how its actions become the sim's (``_sim_action``)."""
 
+    metadata = METADATA
+    sim: Any
+    render_mode: str | None
+    render_size: int
+
+    def _obs(self, o) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def _sim_action(self, action) -> np.ndarray:
+        raise NotImplementedError
+
+    @staticmethod
+    def _info(o) -> dict[str, Any]:
+        return {"point_counts": o.point_counts, "gripper_pose": o.gripper_pose, "object_poses": o.object_poses,
+                "contacts": o.contacts}  # fmt: skip
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        episode_seed = int(seed) if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
+        o = self.sim.reset(episode_seed)
+        return self._obs(o), self._info(o)
+
+    def step(self, action):
+        o, reward, terminated, truncated, info = self.sim.step(self._sim_action(action))
+        return self._obs(o), reward, terminated, truncated, {**self._info(o), **info}
+
+    def render(self) -> np.ndarray | None:
+        """The scene now, (render_size, render_size, 3) uint8, with ``render_mode="rgb_array"``."""
+        return scene_image(self.sim, self.render_size) if self.render_mode == "rgb_array" else None
+
+    def close(self) -> None:
+        self.sim.close()
+
+
+class MeaTaskEnv(_SimGymEnv):
     def __init__(
         self,
         task: str = "block_pull",
@@ -76,33 +112,12 @@ class MeaTaskEnv(gym.Env):
             out["depth"] = o.depth_image
         return out
 
-    @staticmethod
-    def _info(o) -> dict[str, Any]:
-        return {"point_counts": o.point_counts, "gripper_pose": o.gripper_pose, "object_poses": o.object_poses,
-                "contacts": o.contacts}  # fmt: skip
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        episode_seed = int(seed) if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
-        o = self.sim.reset(episode_seed)
-        return self._obs(o), self._info(o)
-
-    def step(self, action):
-        o, reward, terminated, truncated, info = self.sim.step(np.asarray(action, dtype=np.float64))
-        return self._obs(o), reward, terminated, truncated, {**self._info(o), **info}
-
-    def render(self) -> np.ndarray | None:
-        """The scene now, (render_size, render_size, 3) uint8, with ``render_mode="rgb_array"``."""
-        return scene_image(self.sim, self.render_size) if self.render_mode == "rgb_array" else None
-
-    def close(self) -> None:
-        self.sim.close()
+    def _sim_action(self, action) -> np.ndarray:
+        return np.asarray(action, dtype=np.float64)
 
 
-class SurgicalGraspGymEnv(gym.Env):
+class SurgicalGraspGymEnv(_SimGymEnv):
     """Surgical Grasp Any with its discrete action space (the paper's A_d)."""
-
-    metadata = METADATA
 
     def __init__(
         self,
@@ -141,20 +156,8 @@ class SurgicalGraspGymEnv(gym.Env):
         return {"image": o.image, "points": o.points, "jaw": np.array([o.jaw], np.float32),
                 "controller_state": int(o.controller_state), "fsm_state": int(o.fsm_state)}  # fmt: skip
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        episode_seed = int(seed) if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
-        o = self.sim.reset(episode_seed)
-        return self._obs(o), MeaTaskEnv._info(o)
-
-    def step(self, action):
-        o, reward, terminated, truncated, info = self.sim.step(self.sim.discrete_action(int(action)))
-        return self._obs(o), reward, terminated, truncated, {**MeaTaskEnv._info(o), **info}
-
-    render = MeaTaskEnv.render
-
-    def close(self) -> None:
-        self.sim.close()
+    def _sim_action(self, action) -> np.ndarray:
+        return self.sim.discrete_action(int(action))
 
 
 def register_envs() -> None:

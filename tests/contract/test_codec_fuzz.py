@@ -23,11 +23,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from proto.codec import Message, decode
-from proto.control import EvalReport, Heartbeat, ReplayGate
 from proto.episode import Augmentation, Episode
 from proto.inference import ActReply, ActRequest, EStop, ResetReply, ResetRequest
 from proto.msgpack_wire import EXT_NDARRAY, ProtocolError, pack
 from proto.weights import WeightsBlob
+from tests.helpers.wire_samples import fixed_eval_report, fixed_heartbeat, fixed_replay_gate
 
 pytestmark = pytest.mark.contract
 
@@ -95,46 +95,8 @@ def seed_messages() -> list[Message]:
     }
     blob = WeightsBlob.create(12, "equi_rsac", "run-1", tensors, config_json='{"hidden": 8}')
     out += [blob, blob.announcement(len(blob.encode()))]
-    out.append(
-        Heartbeat(
-            service="actor",
-            instance_id="actor-0",
-            pid=123,
-            state="running",
-            started_at=1.0,
-            created_at=2.0,
-            policy_version=12,
-            counters={"episodes": 3.0, "steps/s": 41.5},
-            detail="ok",
-        )
-    )
-    out.append(
-        EvalReport(
-            evaluator_id="eval-0",
-            run_id="run-1",
-            task="drawer_open",
-            policy_version=12,
-            env_steps=1000,
-            episodes=10,
-            success_rate=0.3,
-            mean_return=-1.5,
-            mean_length=40.0,
-            grasp_score=0.25,
-            created_at=3.0,
-        )
-    )
-    out.append(
-        ReplayGate(
-            learner_id="learner-0",
-            run_id="run-1",
-            inserted_steps=500,
-            allowed_steps=600,
-            updates=450,
-            policy_version=12,
-            replay_transitions=5500,
-            created_at=4.0,
-        )
-    )
+    out.append(fixed_heartbeat(detail="ok"))
+    out += [fixed_eval_report(mean_length=47.0), fixed_replay_gate()]  # canonical: a float length
     out.append(ResetRequest(session="robot-0", task="block_pull", created_at=5.0))
     out.append(ResetReply(session="robot-0", accepted=True, reason="", episode=3, policy_version=12,
                           run_id="run-1", observation="voxel"))  # fmt: skip

@@ -22,7 +22,7 @@ import pytest
 
 import proto
 from proto.codec import Message, decode, field_table
-from proto.control import EpisodeAck, EvalReport, Heartbeat, ReplayGate
+from proto.control import EpisodeAck, Heartbeat
 from proto.episode import Augmentation, Episode
 from proto.inference import ActReply, ActRequest, EStop, ResetReply, ResetRequest
 from proto.jsonschema import DIALECT, NDARRAY_KEYWORD, json_schema, json_schema_text
@@ -30,6 +30,7 @@ from proto.msgpack_wire import ProtocolError, pack
 from proto.specs import Arr, Opt
 from proto.weights import WeightsBlob
 from tests.helpers import build_episode, build_weights
+from tests.helpers.wire_samples import fixed_eval_report, fixed_heartbeat, fixed_replay_gate
 
 for _mod in pkgutil.iter_modules(proto.__path__):
     importlib.import_module(f"proto.{_mod.name}")
@@ -62,19 +63,6 @@ def _augmentation() -> Augmentation:
     )
 
 
-def _heartbeat() -> Heartbeat:
-    return Heartbeat(
-        service="learner",
-        instance_id="learner-0",
-        pid=4242,
-        state="running",
-        started_at=1_700_000_000.0,
-        created_at=1_700_000_001.5,
-        policy_version=7,
-        counters={"updates": 10.0, "replay.size": 1e6, "loss/critic": -0.25},
-    )
-
-
 def _act_request(step: int = 0, **obs: Any) -> ActRequest:
     return ActRequest(session="robot-0", episode=1, step=step, stamp=1_700_000_000.25,
                       state=np.array([0.5, 0.0, 0.12, 0.3, 1.0], np.float32), **obs)  # fmt: skip
@@ -93,33 +81,8 @@ SAMPLES: dict[str, Callable[[], list[Message]]] = {
         build_episode(T=2, seed=2, truncated=True, with_images=True, image_shape=(1, 4, 4)),
         build_episode(T=4, seed=3, augmentation=_augmentation()),
     ],
-    "EvalReport": lambda: [
-        EvalReport(
-            evaluator_id="evaluator-0",
-            run_id="run-0",
-            task="drawer_open",
-            policy_version=3,
-            env_steps=-1,
-            episodes=20,
-            success_rate=0.35,
-            mean_return=-1.5,
-            mean_length=47,  # ints are valid numbers
-            grasp_score=0.0,
-            created_at=1_700_000_000.0,
-        )
-    ],
-    "ReplayGate": lambda: [
-        ReplayGate(
-            learner_id="learner-0",
-            run_id="run-0",
-            inserted_steps=100,
-            allowed_steps=150,
-            updates=90,
-            policy_version=-1,
-            replay_transitions=1100,
-            created_at=1_700_000_000.0,
-        )
-    ],
+    "EvalReport": lambda: [fixed_eval_report()],
+    "ReplayGate": lambda: [fixed_replay_gate()],
     "EpisodeAck": lambda: [
         EpisodeAck(learner_id="learner-0", run_id="run-0", episode_ids=[], created_at=1_700_000_000.0),
         EpisodeAck(
@@ -129,7 +92,7 @@ SAMPLES: dict[str, Callable[[], list[Message]]] = {
             created_at=1_700_000_000.0,
         ),
     ],
-    "Heartbeat": lambda: [_heartbeat(), dataclasses.replace(_heartbeat(), counters={}, detail="x" * 512)],
+    "Heartbeat": lambda: [fixed_heartbeat(), fixed_heartbeat(counters={}, detail="x" * 512)],
     "WeightsAnnouncement": lambda: [build_weights(1).announcement(byte_size=123)],
     "WeightsBlob": lambda: [build_weights(2, nbytes=1024)],
     "ResetRequest": lambda: [
@@ -472,7 +435,7 @@ def _mutations() -> list[tuple[str, Callable[[dict], None]]]:
 @pytest.mark.parametrize("name,mutate", _mutations(), ids=[n for n, _ in _mutations()])
 def test_schema_and_codec_agree_on_invalid_heartbeats(name, mutate):
     schema = json_schema(Heartbeat)
-    doc = as_json_document(_heartbeat())
+    doc = as_json_document(fixed_heartbeat())
     assert schema_errors(doc, schema) == []
     bad = copy.deepcopy(doc)
     mutate(bad)

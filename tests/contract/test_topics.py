@@ -104,42 +104,29 @@ def test_topics_are_distinct() -> None:
         by_name("nope")
 
 
-@pytest.mark.parametrize(
-    ("topic", "namespace", "expected"),
-    [
-        (EPISODES_RAW, "default", "mea/v1/default/episodes/raw/*"),
-        (EPISODES_AUGMENTED, "ns", "mea/v1/ns/episodes/augmented/*"),
-        (WEIGHTS_ANNOUNCE, "default", "mea/v1/default/weights/announce/*"),
-        (WEIGHTS_LATEST, "default", "mea/v1/default/weights/latest/*"),
-        (EVAL_REPORTS, "default", "mea/v1/default/eval/reports/*"),
-        (REPLAY_GATE, "default", "mea/v1/default/learner/gate/*"),
-        (EPISODE_ACKS, "default", "mea/v1/default/learner/acks/*"),
-        (SERVE_RESET, "default", "mea/v1/default/serve/reset/*"),
-        (SERVE_ACT, "cell-2", "mea/v1/cell-2/serve/act/*"),
-        (ESTOP, "default", "mea/v1/default/safety/estop/*"),
-        (STATUS, "run-1", "mea/v1/run-1/status/*/*"),
-        (ALIVE, "default", "mea/v1/default/alive/*/*"),
-    ],
-)
+WILDCARD_PATTERNS = [
+    (EPISODES_RAW, "default", "mea/v1/default/episodes/raw/*"),
+    (EPISODES_AUGMENTED, "ns", "mea/v1/ns/episodes/augmented/*"),
+    (WEIGHTS_ANNOUNCE, "default", "mea/v1/default/weights/announce/*"),
+    (WEIGHTS_LATEST, "default", "mea/v1/default/weights/latest/*"),
+    (EVAL_REPORTS, "default", "mea/v1/default/eval/reports/*"),
+    (REPLAY_GATE, "default", "mea/v1/default/learner/gate/*"),
+    (EPISODE_ACKS, "default", "mea/v1/default/learner/acks/*"),
+    (SERVE_RESET, "default", "mea/v1/default/serve/reset/*"),
+    (SERVE_ACT, "cell-2", "mea/v1/cell-2/serve/act/*"),
+    (ESTOP, "default", "mea/v1/default/safety/estop/*"),
+    (STATUS, "run-1", "mea/v1/run-1/status/*/*"),
+    (ALIVE, "default", "mea/v1/default/alive/*/*"),
+]
+
+
+@pytest.mark.parametrize(("topic", "namespace", "expected"), WILDCARD_PATTERNS)
 def test_wildcard_pattern(topic: Topic, namespace: str, expected: str) -> None:
     assert pattern(topic, namespace) == expected
 
 
 def test_every_topic_has_a_pattern_test() -> None:
-    covered = {
-        EPISODES_RAW,
-        EPISODES_AUGMENTED,
-        WEIGHTS_ANNOUNCE,
-        WEIGHTS_LATEST,
-        EVAL_REPORTS,
-        REPLAY_GATE,
-        EPISODE_ACKS,
-        SERVE_RESET,
-        SERVE_ACT,
-        ESTOP,
-        STATUS,
-        ALIVE,
-    }
+    covered = {topic for topic, _, _ in WILDCARD_PATTERNS}
     assert set(TOPICS) == covered, "a topic was added: extend test_wildcard_pattern and the QoS rules"
 
 

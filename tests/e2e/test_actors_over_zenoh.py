@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -14,7 +13,7 @@ import pytest
 from proto.episode import Episode
 from proto.topics import EPISODES_RAW
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
-from tests.helpers import find_free_port
+from tests.helpers import find_free_port, stop_process
 
 pytestmark = pytest.mark.e2e
 ROOT = Path(__file__).resolve().parents[2]
@@ -67,10 +66,5 @@ def test_two_actors_publish_episodes_that_decode(tmp_path):
     finally:
         if bus is not None:
             bus.close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+        stop_process(proc)
     assert proc.returncode == 0

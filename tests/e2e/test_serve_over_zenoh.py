@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -32,7 +31,7 @@ from services.inference.adapter import sim_limits
 from services.learner.core.networks import PRESETS, build_actor
 from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.tasks import make_env
-from tests.helpers import find_free_port
+from tests.helpers import find_free_port, stop_process
 
 pytestmark = pytest.mark.e2e
 ROOT = Path(__file__).resolve().parents[2]
@@ -41,15 +40,6 @@ EPISODES = 3
 
 def _cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "services.cli", *args]
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
 
 
 @pytest.mark.timeout(240)
@@ -99,7 +89,7 @@ def test_sim_robot_over_zenoh_matches_the_evaluator_and_strangers_get_nothing(tm
         with urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=5) as r:
             after = r.read().decode()
     finally:
-        _stop(serve)
+        stop_process(serve)
         log = serve.stdout.read() if serve.stdout else ""
     assert serve.returncode == 0, log[-4000:]
 

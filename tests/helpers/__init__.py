@@ -8,7 +8,10 @@ the same arguments get byte-identical encodings.
 from __future__ import annotations
 
 import dataclasses
+import os
+import signal
 import socket
+import subprocess
 import threading
 
 import numpy as np
@@ -57,6 +60,17 @@ def find_free_port() -> int:
                 _issued_ports.add(port)
                 return port
     raise RuntimeError("no free port found on 127.0.0.1")
+
+
+def stop_process(proc: subprocess.Popen, timeout: float = 20.0) -> None:
+    """SIGTERM a process started with ``start_new_session=True`` that still runs; SIGKILL its
+    process group when it has not ended ``timeout`` seconds later."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
 
 
 def build_episode(

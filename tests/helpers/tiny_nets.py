@@ -3,9 +3,12 @@
 Same contract as ``services.learner.core.networks``: images (B, T, C, H, W) and previous actions
 (B, T, A) in; the actor returns (mean, log_std, state); the critic returns per-step features and
 twin Q values from them. Causal (a GRU), so padding after an episode cannot leak backwards.
+``check_lerp_update`` checks a target-network update (soft or slow target) on small layers.
 """
 
 from __future__ import annotations
+
+import copy
 
 import torch
 from torch import Tensor, nn
@@ -62,3 +65,15 @@ class TinyCritic(nn.Module):
     def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
         x = torch.cat([features, actions], -1)
         return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
+
+
+def check_lerp_update(update, fraction: float, seed: int) -> tuple[nn.Module, nn.Module]:
+    """``update(target, source, fraction)`` on two small linear layers must move every parameter of
+    the target ``fraction`` of its way to the source's; returns (target, source) after it."""
+    torch.manual_seed(seed)
+    source, target = nn.Linear(3, 2), nn.Linear(3, 2)
+    before = copy.deepcopy(target)
+    update(target, source, fraction)
+    for t, b, s in zip(target.parameters(), before.parameters(), source.parameters(), strict=True):
+        assert torch.allclose(t, b + fraction * (s - b)), (t, b, s)
+    return target, source

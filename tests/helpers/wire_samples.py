@@ -164,6 +164,53 @@ def gen_heartbeat(rng: np.random.Generator) -> Heartbeat:
     )
 
 
+def fixed_heartbeat(**changes: Any) -> Heartbeat:
+    """A hand-written valid heartbeat (a learner's), with ``changes`` to its fields."""
+    beat = Heartbeat(
+        service="learner",
+        instance_id="learner-0",
+        pid=4242,
+        state="running",
+        started_at=1_700_000_000.0,
+        created_at=1_700_000_001.5,
+        policy_version=7,
+        counters={"updates": 10.0, "replay.size": 1e6, "loss/critic": -0.25},
+    )
+    return dataclasses.replace(beat, **changes)
+
+
+def fixed_eval_report(**changes: Any) -> EvalReport:
+    """A hand-written valid evaluation report, with ``changes`` to its fields."""
+    report = EvalReport(
+        evaluator_id="evaluator-0",
+        run_id="run-0",
+        task="drawer_open",
+        policy_version=3,
+        env_steps=-1,
+        episodes=20,
+        success_rate=0.35,
+        mean_return=-1.5,
+        mean_length=47,  # ints are valid numbers (decoded as floats: not canonical bytes)
+        grasp_score=0.0,
+        created_at=1_700_000_000.0,
+    )
+    return dataclasses.replace(report, **changes)
+
+
+def fixed_replay_gate() -> ReplayGate:
+    """A hand-written valid replay gate."""
+    return ReplayGate(
+        learner_id="learner-0",
+        run_id="run-0",
+        inserted_steps=100,
+        allowed_steps=150,
+        updates=90,
+        policy_version=-1,
+        replay_transitions=1100,
+        created_at=1_700_000_000.0,
+    )
+
+
 def gen_eval_report(rng: np.random.Generator) -> EvalReport:
     return EvalReport(
         evaluator_id=rand_id(rng),

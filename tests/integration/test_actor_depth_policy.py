@@ -19,7 +19,7 @@ from proto.weights import WeightsBlob
 from services.actor.config import ActorConfig
 from services.actor.main import run
 from services.augmenter.core.pipeline import AugmentSettings, augment_episode
-from services.common.bus import Hub, InProcBus
+from services.common.bus import Hub, InProcBus, Subscription
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsServer
 from services.episodes.rollout import policy_image, policy_input
@@ -50,14 +50,20 @@ def _cfg(index: int, depth_image: bool) -> ActorConfig:
                        service=ServiceConfig(instance_id=f"actor-{index}", metrics_port=0, log_format="text"))  # fmt: skip
 
 
-@pytest.mark.timeout(180)
-def test_depth_policy_acts_on_the_rendered_depth_image():
+def _learner_side(blob: WeightsBlob) -> tuple[Hub, Subscription, WeightsServer]:
+    """A hub whose learner side is faked: a weights server holding ``blob``, a subscriber to raw episodes."""
     hub = Hub()
     observer = InProcBus(hub)
     episodes = observer.subscribe(EPISODES_RAW, capacity=8)
-    blob = _blob(7, "depth")
     server = WeightsServer(observer, "learner-0")
     server.publish(blob)
+    return hub, episodes, server
+
+
+@pytest.mark.timeout(180)
+def test_depth_policy_acts_on_the_rendered_depth_image():
+    blob = _blob(7, "depth")
+    hub, episodes, server = _learner_side(blob)
     cfg = _cfg(2, depth_image=True)
     try:
         assert run(cfg, bus_factory=lambda _c: InProcBus(hub)) == 0
@@ -105,12 +111,7 @@ def spy_metrics(monkeypatch) -> list:
 
 @pytest.mark.timeout(180)
 def test_actor_without_depth_image_refuses_a_depth_policy_and_runs_on(monkeypatch):
-    hub = Hub()
-    observer = InProcBus(hub)
-    episodes = observer.subscribe(EPISODES_RAW, capacity=8)
-    server = WeightsServer(observer, "learner-0")
-    server.publish(_blob(7, "depth"))
-
+    hub, episodes, server = _learner_side(_blob(7, "depth"))
     registries = spy_metrics(monkeypatch)
 
     def bad_weights() -> float:
@@ -196,11 +197,7 @@ def test_policy_input_needs_the_depth_image():
 def test_an_episode_with_a_non_finite_action_is_dropped_counted_and_the_actor_runs_on(monkeypatch):
     from services.learner.core import policy as policy_module
 
-    hub = Hub()
-    observer = InProcBus(hub)
-    episodes = observer.subscribe(EPISODES_RAW, capacity=8)
-    server = WeightsServer(observer, "learner-0")
-    server.publish(_blob(9, "voxel"))
+    hub, episodes, server = _learner_side(_blob(9, "voxel"))
     registries = spy_metrics(monkeypatch)
     real_act, calls = policy_module.PolicyRuntime.act, {"n": 0}
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import pytest
 
 from mea_tools.bench.serve import (
@@ -14,7 +12,7 @@ from mea_tools.bench.serve import (
     SECTION_SWAPS,
     SECTION_TARGET,
 )
-from services.cli import main
+from tests.helpers.cli import bench_json
 
 pytestmark = pytest.mark.integration
 REQUESTS, SWAPS = 30, 2
@@ -26,11 +24,7 @@ def test_bench_serve_prints_one_sane_json_object(capsys):
     argv = ["bench", "serve", "--requests", str(REQUESTS), "--warmup", "5", "--presets", "cpu-small",
             "--swaps", str(SWAPS), "--observations", "40", "--episode-steps", "10", "--timeout-s", "30",
             "--json"]  # fmt: skip
-    assert main(argv) == 0
-    out = capsys.readouterr().out.strip().splitlines()
-    assert len(out) == 1
-    result = json.loads(out[0])
-    assert result["benchmark"] == "serve"
+    result = bench_json(argv, capsys)
     sections = result["results"]
     assert set(sections) == {
         SECTION_ACT,

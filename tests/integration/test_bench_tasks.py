@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import json
-
 import pytest
 
-from services.cli import main
+from tests.helpers.cli import bench_json
 
 pytestmark = pytest.mark.integration
 
@@ -16,11 +14,7 @@ pytestmark = pytest.mark.integration
 def test_bench_tasks_prints_one_json_object(capsys):
     argv = ["bench", "tasks", "--tasks", "block_pick", "--episodes", "2", "--prior-episodes", "1", "--workers", "2",
             "--json"]  # fmt: skip
-    assert main(argv) == 0
-    out = capsys.readouterr().out.strip().splitlines()
-    assert len(out) == 1
-    result = json.loads(out[0])
-    assert result["benchmark"] == "tasks"
+    result = bench_json(argv, capsys)
     experts = result["results"]["experts"]
     assert {(r["task"], r["style"]) for r in experts} == {("block_pick", "direct"), ("block_pick", "probe")}
     for r in experts:

@@ -66,6 +66,31 @@ def _pid_alive(pid: int) -> bool:
         return False
 
 
+def _ends_within(pid: int, timeout: float) -> bool:
+    """Whether process ``pid`` is gone within ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while _pid_alive(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return not _pid_alive(pid)
+
+
+@pytest.fixture
+def launch(tmp_path):
+    """``launch(*extra)`` starts `mea run` (``_launch``) on a free port and returns (process, port);
+    a launcher still running when the test ends is killed with its process group."""
+    procs: list[subprocess.Popen] = []
+
+    def start(*extra: str) -> tuple[subprocess.Popen, int]:
+        port = _port()
+        procs.append(_launch(tmp_path, port, *extra))
+        return procs[-1], port
+
+    yield start
+    for proc in procs:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
 def _wait_for_service(port: int, timeout: float = 60.0) -> int:
     """Wait for the dummy service's liveliness token and heartbeat; return its pid."""
     from proto.topics import STATUS
@@ -85,59 +110,38 @@ def _wait_for_service(port: int, timeout: float = 60.0) -> int:
 
 
 @pytest.mark.timeout(120)
-def test_sigterm_stops_every_process_within_seconds(tmp_path):
-    port = _port()
-    proc = _launch(tmp_path, port)
-    try:
-        child = _wait_for_service(port)
-        assert _pid_alive(child)
-        t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
-        rc = proc.wait(timeout=15)
-        elapsed = time.monotonic() - t0
-        assert rc == 0, proc.stdout.read()
-        assert elapsed < 8.0, f"shutdown took {elapsed:.1f} s"
-        deadline = time.monotonic() + 5
-        while _pid_alive(child) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert not _pid_alive(child), "service process outlived the launcher"
-        assert (tmp_path / "run" / "config.json").exists()
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+def test_sigterm_stops_every_process_within_seconds(tmp_path, launch):
+    proc, port = launch()
+    child = _wait_for_service(port)
+    assert _pid_alive(child)
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    rc = proc.wait(timeout=15)
+    elapsed = time.monotonic() - t0
+    assert rc == 0, proc.stdout.read()
+    assert elapsed < 8.0, f"shutdown took {elapsed:.1f} s"
+    assert _ends_within(child, 5), "service process outlived the launcher"
+    assert (tmp_path / "run" / "config.json").exists()
 
 
 @pytest.mark.timeout(120)
-def test_sigkilled_launcher_leaves_no_orphans(tmp_path):
-    port = _port()
-    proc = _launch(tmp_path, port)
-    try:
-        child = _wait_for_service(port)
-        proc.kill()
-        proc.wait(timeout=10)
-        deadline = time.monotonic() + 10
-        while _pid_alive(child) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert not _pid_alive(child), "orphaned service survived a SIGKILLed launcher"
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+def test_sigkilled_launcher_leaves_no_orphans(launch):
+    proc, port = launch()
+    child = _wait_for_service(port)
+    proc.kill()
+    proc.wait(timeout=10)
+    assert _ends_within(child, 10), "orphaned service survived a SIGKILLed launcher"
 
 
 @pytest.mark.timeout(120)
-def test_a_failed_service_is_reported_and_stops_the_stack(tmp_path):
-    port = _port()
-    proc = _launch(tmp_path, port, "--restart-limit", "0")
-    try:
-        child = _wait_for_service(port)
-        os.kill(child, signal.SIGKILL)
-        rc = proc.wait(timeout=20)
-        out = proc.stdout.read()
-        assert rc == 1, out
-        assert "service exited" in out and "exitcode=-9" in out, out
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+def test_a_failed_service_is_reported_and_stops_the_stack(launch):
+    proc, port = launch("--restart-limit", "0")
+    child = _wait_for_service(port)
+    os.kill(child, signal.SIGKILL)
+    rc = proc.wait(timeout=20)
+    out = proc.stdout.read()
+    assert rc == 1, out
+    assert "service exited" in out and "exitcode=-9" in out, out
 
 
 def _wait_for_new_pid(port: int, old: int, timeout: float = 60.0) -> int:
@@ -158,22 +162,17 @@ def _wait_for_new_pid(port: int, old: int, timeout: float = 60.0) -> int:
 
 
 @pytest.mark.timeout(180)
-def test_a_killed_service_is_restarted_and_a_service_that_keeps_dying_stops_the_stack(tmp_path):
-    port = _port()
-    proc = _launch(tmp_path, port, "--restart-limit", "1", "--restart-window-seconds", "300")
-    try:
-        first = _wait_for_service(port)
-        os.kill(first, signal.SIGKILL)
-        second = _wait_for_new_pid(port, first)  # restarted after the 1 s backoff
-        assert _pid_alive(second) and proc.poll() is None
-        os.kill(second, signal.SIGKILL)  # the second exit within the window: give up, stop the stack
-        rc = proc.wait(timeout=30)
-        out = proc.stdout.read()
-        assert rc == 1, out
-        assert "restarting" in out and "not restarted" in out, out
-        summary = json.loads((tmp_path / "run" / "summary.json").read_text())
-        assert summary["instances"]["extra-0"]["restarts"] == 1
-        assert summary["instances"]["extra-0"]["exitcode"] == -signal.SIGKILL
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+def test_a_killed_service_is_restarted_and_a_service_that_keeps_dying_stops_the_stack(tmp_path, launch):
+    proc, port = launch("--restart-limit", "1", "--restart-window-seconds", "300")
+    first = _wait_for_service(port)
+    os.kill(first, signal.SIGKILL)
+    second = _wait_for_new_pid(port, first)  # restarted after the 1 s backoff
+    assert _pid_alive(second) and proc.poll() is None
+    os.kill(second, signal.SIGKILL)  # the second exit within the window: give up, stop the stack
+    rc = proc.wait(timeout=30)
+    out = proc.stdout.read()
+    assert rc == 1, out
+    assert "restarting" in out and "not restarted" in out, out
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["instances"]["extra-0"]["restarts"] == 1
+    assert summary["instances"]["extra-0"]["exitcode"] == -signal.SIGKILL

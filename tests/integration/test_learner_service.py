@@ -13,6 +13,7 @@ from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsClient
 from services.learner import checkpoint
+from services.learner.config import LearnerConfig
 from services.learner.core.policy import PolicyRuntime
 from tests.helpers.learner import SIZE, TINY_NET, learner_episode, start_learner, tiny_learner_config
 
@@ -21,6 +22,13 @@ pytestmark = pytest.mark.integration
 
 def svc() -> ServiceConfig:
     return ServiceConfig(instance_id="learner-t", metrics_port=0, log_format="text", heartbeat_seconds=0.2)
+
+
+def spi_config(tmp_path, max_updates: int, min_steps: int = 20, **kw) -> LearnerConfig:
+    """A tiny learner at 0.5 samples per insert with an error buffer of 5: updates allowed =
+    0.5 * steps - (0.5 * min_steps - 5)."""
+    return tiny_learner_config(tmp_path, svc(), samples_per_insert=0.5, min_steps=min_steps, error_buffer=5.0,
+                               max_updates=max_updates, **kw)  # fmt: skip
 
 
 def wait_for(pred, timeout: float, what: str):
@@ -34,10 +42,7 @@ def wait_for(pred, timeout: float, what: str):
 
 
 def test_learner_respects_the_ratio_publishes_versions_and_survives_bad_input(tmp_path):
-    # spi 0.5, min 20 steps, error buffer 5: updates allowed = 0.5 * steps - (0.5 * 20 - 5) = 0.5 * steps - 5
-    cfg = tiny_learner_config(
-        tmp_path, svc(), samples_per_insert=0.5, min_steps=20, error_buffer=5.0, max_updates=14
-    )
+    cfg = spi_config(tmp_path, max_updates=14)  # updates allowed = 0.5 * steps - 5
     hub = Hub()
     observer = InProcBus(hub)
     announces = observer.subscribe(WEIGHTS_ANNOUNCE, capacity=256)
@@ -103,9 +108,7 @@ def test_learner_respects_the_ratio_publishes_versions_and_survives_bad_input(tm
 
 def test_a_state_critic_learner_trains_on_privileged_rows_and_rejects_episodes_without_them(tmp_path):
     net = dataclasses.replace(TINY_NET, critic_input="state", state_critic_hidden=(16,))
-    cfg = tiny_learner_config(
-        tmp_path, svc(), net=net, samples_per_insert=0.5, min_steps=10, error_buffer=5.0, max_updates=4
-    )
+    cfg = spi_config(tmp_path, max_updates=4, min_steps=10, net=net)
     hub = Hub()
     observer = InProcBus(hub)
     status = observer.subscribe(STATUS, capacity=256, service="learner")
@@ -127,9 +130,7 @@ def test_the_learner_acknowledges_every_raw_episode_and_stores_a_repeat_once(tmp
     from proto.topics import EPISODE_ACKS
     from services.learner import checkpoint
 
-    cfg = tiny_learner_config(
-        tmp_path, svc(), samples_per_insert=0.5, min_steps=20, error_buffer=5.0, max_updates=2
-    )
+    cfg = spi_config(tmp_path, max_updates=2)
     hub = Hub()
     observer = InProcBus(hub)
     acks = observer.subscribe(EPISODE_ACKS, capacity=16)

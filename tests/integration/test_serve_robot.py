@@ -35,16 +35,9 @@ from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensor
 from services.tasks import make_env
 
 SPEC = PolicySpec(PRESETS["cpu-small"])
-
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """The server, the evaluator and the reference runtimes here on one thread each, as deployed:
-    another thread count sums convolutions in another order, and actions are compared bit for bit."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+# the server, the evaluator and the reference runtimes on one torch thread each, as deployed: actions
+# are compared bit for bit
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def blob(version: int, seed: int = 0) -> WeightsBlob:
@@ -94,20 +87,27 @@ class Serving:
         self.thread.join(10)
 
 
-@pytest.mark.slow
-def test_the_sim_robot_through_serve_runs_the_evaluators_episodes_action_for_action(tmp_path):
-    hub, task = Hub(), "block_pull"
-    robot = SimRobot(task, EvaluatorConfig().env_settings())
-    path = weights_file.write(tmp_path / "weights", blob(3))
+def serve_and_drive(
+    tmp_path, robot: SimRobot, weights: WeightsBlob, episodes: int
+) -> tuple[RobotConfig, dict]:
+    """`mea serve` with ``weights`` (from a weights file) and `mea robot` driving ``robot`` through it
+    for ``episodes`` episodes, recorded to ``robot.mcap``: the robot's config and run summary."""
+    hub = Hub()
+    path = weights_file.write(tmp_path / "weights", weights)
     serving = Serving(ServeConfig(weights=str(path), limits_file=limits_file(tmp_path, robot.env),
                                   service=svc("inference-0")), hub)  # fmt: skip
     try:
-        cfg = RobotConfig(
-            sim=True, task=task, episodes=2, record=str(tmp_path / "robot.mcap"), service=svc("robot-0")
-        )
-        summary = robot_main.run(cfg, lambda c: InProcBus(hub), robot)
+        cfg = RobotConfig(sim=True, task=robot.task, episodes=episodes, record=str(tmp_path / "robot.mcap"),
+                          service=svc("robot-0"))  # fmt: skip
+        return cfg, robot_main.run(cfg, lambda c: InProcBus(hub), robot)
     finally:
         serving.stop()
+
+
+@pytest.mark.slow
+def test_the_sim_robot_through_serve_runs_the_evaluators_episodes_action_for_action(tmp_path):
+    task = "block_pull"
+    cfg, summary = serve_and_drive(tmp_path, SimRobot(task, EvaluatorConfig().env_settings()), blob(3), 2)
     assert summary["holds"] == {} and summary["versions"] == {
         "3": sum(e["length"] for e in summary["episodes"])
     }
@@ -134,22 +134,13 @@ def test_a_gasv2_policy_on_the_surgical_arm_follows_the_executed_actions(tmp_pat
     from services.learner.core.gasv2.config import PRESETS as GASV2_PRESETS
     from services.learner.core.gasv2.policy import GasV2Spec
 
-    hub, task = Hub(), "surgical_grasp_any"
+    task = "surgical_grasp_any"
     agent = GasV2Agent(GASV2_PRESETS["smoke"], seed=0)
     tensors = {k: v.numpy().copy() for k, v in agent.policy.state_dict().items()}
     gas = WeightsBlob.create(2, "gasv2", "run-g", tensors, GasV2Spec(agent.cfg).to_json())
     robot = SimRobot(task, EvaluatorConfig(task=task).env_settings())
     robot.max_steps = 25
-    path = weights_file.write(tmp_path / "weights", gas)
-    serving = Serving(ServeConfig(weights=str(path), limits_file=limits_file(tmp_path, robot.env),
-                                  service=svc("inference-0")), hub)  # fmt: skip
-    try:
-        cfg = RobotConfig(
-            sim=True, task=task, episodes=1, record=str(tmp_path / "robot.mcap"), service=svc("robot-0")
-        )
-        summary = robot_main.run(cfg, lambda c: InProcBus(hub), robot)
-    finally:
-        serving.stop()
+    _, summary = serve_and_drive(tmp_path, robot, gas, 1)
     requests = [m for _, m in read_messages(tmp_path / "robot.mcap", types={"ActRequest"})]
     served = [m.action for _, m in read_messages(tmp_path / "robot.mcap", types={"ActReply"})]
     assert summary["holds"] == {} and requests[0].image.shape == (3, 64, 64)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import io
 import json
 import math
-from collections.abc import Iterator
 from dataclasses import replace
 
 import pytest
@@ -19,7 +18,7 @@ from services.learner.core.gasv2.config import PRESETS, DreamerConfig
 from services.learner.core.gasv2.rssm import RSSMState
 from tests.unit.test_gasv2_math import random_batch
 
-pytestmark = pytest.mark.unit
+pytestmark = [pytest.mark.unit, pytest.mark.usefixtures("one_torch_thread")]
 SMOKE = PRESETS["smoke"]
 FAST = replace(SMOKE, model_lr=1e-3, actor_lr=1e-3, critic_lr=1e-3)
 """The smoke model with learning rates raised (x10 the paper's model lr) so that toy problems
@@ -27,14 +26,6 @@ converge in a few hundred updates; every loss is the paper's."""
 FEATURES = torch.as_tensor(DISCRETE_FEATURES)
 REQUIRED = ("model_loss", "image_loss", "reward_loss", "discount_loss", "kl", "actor_loss", "critic_loss",
             "actor_entropy", "imag_return", "imag_starts")  # fmt: skip
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread() -> Iterator[None]:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 # --------------------------------------------------------------------------------------------

@@ -4,8 +4,6 @@ padding, terminals and resets."""
 
 from __future__ import annotations
 
-import copy
-from collections.abc import Iterator
 from dataclasses import replace
 
 import pytest
@@ -37,17 +35,10 @@ from services.learner.core.gasv2.rssm import (
     sample_one_hot,
 )
 from services.learner.core.gasv2.world_model import Decoder, Encoder, WorldModel
+from tests.helpers.tiny_nets import check_lerp_update
 
-pytestmark = pytest.mark.unit
+pytestmark = [pytest.mark.unit, pytest.mark.usefixtures("one_torch_thread")]
 SMOKE = PRESETS["smoke"]
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread() -> Iterator[None]:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def random_batch(
@@ -338,12 +329,7 @@ def test_critic_loss_is_a_weighted_half_squared_error_onto_detached_returns():
 
 
 def test_update_slow_target_copies_at_fraction_one_and_moves_by_the_fraction_otherwise():
-    torch.manual_seed(3)
-    critic, slow = nn.Linear(3, 2), nn.Linear(3, 2)
-    before = copy.deepcopy(slow)
-    update_slow_target(slow, critic, 0.25)
-    for s, b, c in zip(slow.parameters(), before.parameters(), critic.parameters(), strict=True):
-        assert torch.allclose(s, b + 0.25 * (c - b))
+    slow, critic = check_lerp_update(update_slow_target, 0.25, seed=3)
     update_slow_target(slow, critic, 1.0)
     for s, c in zip(slow.parameters(), critic.parameters(), strict=True):
         assert torch.equal(s, c)

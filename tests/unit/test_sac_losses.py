@@ -26,7 +26,7 @@ from services.learner.core.sac.losses import (
     soft_update,
     tanh_gaussian_sample,
 )
-from tests.helpers.tiny_nets import TinyActor, TinyCritic
+from tests.helpers.tiny_nets import TinyActor, TinyCritic, check_lerp_update
 
 C, H, W = 2, 4, 4
 
@@ -226,12 +226,7 @@ def test_alpha_loss_pushes_toward_target_entropy():
 
 
 def test_soft_update_is_a_lerp():
-    torch.manual_seed(0)
-    src, tgt = nn.Linear(3, 2), nn.Linear(3, 2)
-    before = copy.deepcopy(tgt)
-    soft_update(tgt, src, 0.25)
-    for t, b, s in zip(tgt.parameters(), before.parameters(), src.parameters(), strict=True):
-        assert torch.allclose(t, 0.75 * b + 0.25 * s)
+    check_lerp_update(soft_update, 0.25, seed=0)
 
 
 # --------------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from proto.actions import DELTA_XYZ
 from services.observation.projection import ProjectionSpec, project
 from services.tasks import GENERAL_TASKS, make_env
 from services.tasks.prior import measure, summarise
+from tests.helpers.env_asserts import refused_actions_change_nothing
 
 pytestmark = pytest.mark.unit
 
@@ -121,18 +122,9 @@ def test_depth_image_and_voxel_projection_share_orientation():
 def test_a_non_finite_action_is_refused_without_touching_the_env(env, bad):
     """On every task: the refused step changes nothing, so the episode goes on as if it never came."""
     ok = np.array([0.5, 0.3, -0.2, 0.1, 0.4])
-    env.reset(11)
-    env.step(ok)
-    reference = env.step(ok)[0]
-    env.reset(11)
-    env.step(ok)
-    before = (env.t, env.robot.target_pos.copy(), env.robot.target_yaw, env.robot.jaw)
-    action = ok.copy()
-    action[2] = bad
-    with pytest.raises(ValueError, match="finite"):
-        env.step(action)
-    with pytest.raises(ValueError, match="shape"):
-        env.step(ok[:4])
-    after = (env.t, env.robot.target_pos, env.robot.target_yaw, env.robot.jaw)
-    assert before[0] == after[0] and np.array_equal(before[1], after[1]) and before[2:] == after[2:]
-    np.testing.assert_array_equal(env.step(ok)[0].points, reference.points)
+
+    def state():
+        return (env.t, env.robot.target_pos.copy(), env.robot.target_yaw, env.robot.jaw)
+
+    reference, again = refused_actions_change_nothing(env, ok, bad, state)
+    np.testing.assert_array_equal(again.points, reference.points)

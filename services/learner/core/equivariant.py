@@ -71,13 +71,14 @@ class GroupPool(nn.Module):
         return group_pool(x, self.group, self.dim)
 
 
-class LiftConv2d(nn.Module):
-    """Trivial input channels -> regular fields: output channel (f, g) correlates with T_g(W[f])."""
+class _TiedConv2d(nn.Module):
+    """A conv2d whose kernel is gathered from a base weight (out_fields, in_size, taps) by the index
+    ``kernel_index`` gives (|G| x taps entries), with one bias per output field."""
 
     def __init__(
         self,
         group: Group,
-        in_channels: int,
+        in_size: int,
         out_fields: int,
         kernel_size: int,
         stride: int = 1,
@@ -85,13 +86,32 @@ class LiftConv2d(nn.Module):
     ) -> None:
         super().__init__()
         self.group, self.stride, self.k = group, stride, kernel_size
-        self.in_channels, self.out_fields = in_channels, out_fields
-        fan_in = in_channels * kernel_size**2
-        self.weight = nn.Parameter(
-            torch.randn(out_fields, in_channels, kernel_size**2) * math.sqrt(2.0 / fan_in)
-        )
+        self.in_size, self.out_fields = in_size, out_fields
+        index = self.kernel_index(group, kernel_size)
+        taps = index.numel() // group.order
+        fan_in = in_size * taps
+        self.weight = nn.Parameter(torch.randn(out_fields, in_size, taps) * math.sqrt(2.0 / fan_in))
         self.bias = nn.Parameter(torch.zeros(out_fields)) if bias else None
-        self.register_buffer("index", _spatial_index(group, kernel_size).reshape(-1), persistent=False)
+        self.register_buffer("index", index, persistent=False)
+
+    @staticmethod
+    def kernel_index(group: Group, k: int) -> Tensor:
+        raise NotImplementedError
+
+    def expanded_weight(self) -> Tensor:
+        raise NotImplementedError
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.conv2d(x, self.expanded_weight(), field_bias(self.bias, self.group), self.stride)
+
+
+class LiftConv2d(_TiedConv2d):
+    """Trivial input channels (``in_size``) -> regular fields: output channel (f, g) correlates with
+    T_g(W[f])."""
+
+    @staticmethod
+    def kernel_index(group: Group, k: int) -> Tensor:
+        return _spatial_index(group, k).reshape(-1)
 
     def expanded_weight(self) -> Tensor:
         """(F |G|, C, k, k) conv2d kernel."""
@@ -100,32 +120,13 @@ class LiftConv2d(nn.Module):
         w = self.weight.index_select(2, self.index).view(F_, C, G, kk)
         return w.permute(0, 2, 1, 3).reshape(F_ * G, C, k, k)
 
-    def forward(self, x: Tensor) -> Tensor:
-        return F.conv2d(x, self.expanded_weight(), field_bias(self.bias, self.group), self.stride)
 
+class GroupConv2d(_TiedConv2d):
+    """Regular fields (``in_size`` of them) -> regular fields with base kernel (out, in, |G|, k, k)."""
 
-class GroupConv2d(nn.Module):
-    """Regular fields -> regular fields with base kernel (out, in, |G|, k, k)."""
-
-    def __init__(
-        self,
-        group: Group,
-        in_fields: int,
-        out_fields: int,
-        kernel_size: int,
-        stride: int = 1,
-        bias: bool = True,
-    ) -> None:
-        super().__init__()
-        self.group, self.stride, self.k = group, stride, kernel_size
-        self.in_fields, self.out_fields = in_fields, out_fields
-        G = group.order
-        fan_in = in_fields * G * kernel_size**2
-        self.weight = nn.Parameter(
-            torch.randn(out_fields, in_fields, G * kernel_size**2) * math.sqrt(2.0 / fan_in)
-        )
-        self.bias = nn.Parameter(torch.zeros(out_fields)) if bias else None
-        self.register_buffer("index", _group_conv_index(group, kernel_size), persistent=False)
+    @staticmethod
+    def kernel_index(group: Group, k: int) -> Tensor:
+        return _group_conv_index(group, k)
 
     def expanded_weight(self) -> Tensor:
         """(F_out |G|, F_in |G|, k, k) conv2d kernel."""
@@ -133,9 +134,6 @@ class GroupConv2d(nn.Module):
         G, k = self.group.order, self.k
         w = self.weight.index_select(2, self.index).view(Fo, Fi, G, G, k * k)
         return w.permute(0, 2, 1, 3, 4).reshape(Fo * G, Fi * G, k, k)
-
-    def forward(self, x: Tensor) -> Tensor:
-        return F.conv2d(x, self.expanded_weight(), field_bias(self.bias, self.group), self.stride)
 
 
 class GroupLinear(nn.Module):

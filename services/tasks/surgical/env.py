@@ -8,11 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pybullet as pb
 
-from proto.actions import ACTION_DIM
 from proto.discrete_actions import NAMES, to_vector
 from services.observation.dsa import dsa_image, in_cube, voxel_centroid, world_clouds
 from services.tasks.camera import _downsample, sample_fixed
-from services.tasks.env import EnvSettings, Observation
+from services.tasks.env import EnvSettings, Observation, check_action
 from services.tasks.surgical import objects
 from services.tasks.surgical.camera import CameraPose, ObliqueCamera, image_noise
 from services.tasks.surgical.control import HybridController, centroid_error, fsm_index, fsm_reward
@@ -145,20 +144,10 @@ class SurgicalGraspEnv:
             "object_scale": np.array([p.spec.scale], np.float64),
         }
 
-    def _validate(self, action: np.ndarray) -> np.ndarray:
-        a = np.asarray(action, dtype=float)
-        if a.shape != (ACTION_DIM,):
-            raise ValueError(
-                f"action: expected shape ({ACTION_DIM},) (jaw, dx, dy, dz, dtheta), got {a.shape}"
-            )
-        if not np.isfinite(a).all():
-            raise ValueError(f"action: every component must be finite, got {a.tolist()}")
-        return a
-
     def step(self, action: np.ndarray) -> tuple[Observation, float, bool, bool, dict]:
         """One env step. An action that is not ``ACTION_DIM`` finite numbers is refused with a
         ValueError naming what is wrong, before anything (instrument, physics, time) changes."""
-        a = self._validate(action)
+        a = check_action(action)
         s, acts = self.settings, self.settings.actions
         by_controller = self.controller.active
         executed = self.controller.action(self._err) if by_controller else np.clip(a, -1.0, 1.0)
