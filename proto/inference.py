@@ -30,7 +30,7 @@ from proto.msgpack_wire import ProtocolError
 from proto.specs import ID_PATTERN, Arr, Bool, Float, Int, ListOf, Opt, Str, spec
 
 OBSERVATIONS = ("voxel", "depth", "dsa")
-"""What a policy observes (``services.learner.core.policy.OBSERVATIONS``)."""
+"""What a policy observes (``services.algorithms.policy.OBSERVATIONS``)."""
 REASON = r"[a-z_]{1,32}"
 STATE_DIM = 5
 """``ActRequest.state``: pivot x, y, z (m, robot base frame), yaw (rad), jaw opening (0 closed .. 1 open)."""

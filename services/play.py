@@ -129,7 +129,7 @@ def play_policy(a: PlayArgs) -> str:
     if task not in TASK_CLASSES:
         raise ValueError(f"--task must be one of {', '.join(TASK_CLASSES)} (a weights file outside a run "
                          f"directory names none), not {task!r}")  # fmt: skip
-    from services.learner.core.policy import PolicyRuntime, blob_observation, check_observation
+    from services.algorithms.policy import PolicyRuntime, blob_observation, check_observation
 
     try:
         observation = blob_observation(blob)

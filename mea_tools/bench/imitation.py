@@ -22,6 +22,11 @@ from proto.episode import Episode
 from proto.weights import WeightsBlob
 from services.actor.config import EXPERTS
 from services.actor.rollout import RolloutActor
+from services.algorithms.batch import to_batch
+from services.algorithms.imitation import Cloner, CloneSettings, held_loss
+from services.algorithms.networks import build_actor
+from services.algorithms.policy import PolicyRuntime, PolicySpec, actor_tensors
+from services.algorithms.replay import SequenceReplay
 from services.augmenter.core.pipeline import augment_episode
 from services.common import weights_file
 from services.common.config import ServiceConfig
@@ -30,11 +35,6 @@ from services.evaluator.config import EvaluatorConfig
 from services.evaluator.evaluation import EpisodeRunner
 from services.learner import init_actor
 from services.learner.config import learner_presets
-from services.learner.core.batch import to_batch
-from services.learner.core.imitation import Cloner, CloneSettings, held_loss
-from services.learner.core.networks import build_actor
-from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
-from services.learner.core.replay import SequenceReplay
 from services.plan import actor_config, augmenter_config, learner_config
 from services.run_config import RunConfig
 from services.tasks import GENERAL_TASKS, make_env

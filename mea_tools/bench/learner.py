@@ -30,20 +30,20 @@ from mea_tools.bench.report import emit
 from proto.discrete_actions import to_vector
 from proto.episode import Episode
 from proto.weights import WeightsBlob
+from services.algorithms.batch import to_batch
+from services.algorithms.gasv2.agent import GasV2Agent
+from services.algorithms.gasv2.algorithm import GasV2Config
+from services.algorithms.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
+from services.algorithms.networks import NetConfig, build_actor, build_critic
+from services.algorithms.policy import PolicyRuntime, PolicySpec, actor_tensors
+from services.algorithms.privileged import STATE_DIM
+from services.algorithms.replay import SequenceReplay, public_reference_bytes
+from services.algorithms.sac.agent import RecurrentSAC
+from services.algorithms.sac.algorithm import SacConfig
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 from services.common.weights import WeightsClient, WeightsServer
 from services.learner.config import PRESETS as LEARNER_PRESETS
 from services.learner.config import check_device, prepare_device
-from services.learner.core.batch import to_batch
-from services.learner.core.gasv2.agent import GasV2Agent
-from services.learner.core.gasv2.algorithm import GasV2Config
-from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
-from services.learner.core.networks import NetConfig, build_actor, build_critic
-from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
-from services.learner.core.privileged import STATE_DIM
-from services.learner.core.replay import SequenceReplay, public_reference_bytes
-from services.learner.core.sac.agent import RecurrentSAC
-from services.learner.core.sac.algorithm import SacConfig
 from services.observation.dsa import SURGICAL_GRASP_ANY, dsa_image_from_voxels
 
 CONSUMER = "bench-consumer"

@@ -28,6 +28,9 @@ from mea_tools.bench.report import emit
 from proto.inference import ActRequest, ResetRequest
 from proto.topics import SERVE_ACT, SERVE_RESET
 from proto.weights import WeightsBlob
+from services.algorithms.networks import PRESETS as NET_PRESETS
+from services.algorithms.networks import build_actor
+from services.algorithms.policy import PolicySpec, actor_tensors
 from services.common import run_key, weights_file
 from services.common.bus.base import Credentials
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
@@ -40,9 +43,6 @@ from services.inference.config import ServeConfig
 from services.inference.core.sessions import InferenceCore, ServeSettings
 from services.inference.main import WEIGHTS_POLL_SECONDS
 from services.inference.main import main as serve_main
-from services.learner.core.networks import PRESETS as NET_PRESETS
-from services.learner.core.networks import build_actor
-from services.learner.core.policy import PolicySpec, actor_tensors
 
 TASK = "block_pull"
 SESSION = "bench-robot"
@@ -71,7 +71,7 @@ class ServeBenchConfig:
     warmup: int = 20
     """Untimed act requests before them."""
     presets: str = "cpu-small,paper"
-    """Actor presets to serve, comma-separated (services.learner.core.networks PRESETS)."""
+    """Actor presets to serve, comma-separated (services.algorithms.networks PRESETS)."""
     episode_steps: int = 50
     """Reset the session's episode every this many act requests."""
     observations: int = 300

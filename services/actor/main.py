@@ -173,7 +173,7 @@ def _load_weights(
     if blob is None:
         return
     try:
-        from services.learner.core.policy import (
+        from services.algorithms.policy import (
             blob_observation,
             check_observation,
         )  # torch: learned actors only
@@ -199,7 +199,7 @@ def run(cfg: ActorConfig, bus_factory=None) -> int:
         sender = EpisodeSender(ctx, cfg, mx)
         policy = None
         if cfg.policy == "learned":
-            from services.learner.core.policy import PolicyRuntime  # torch: only for learned actors
+            from services.algorithms.policy import PolicyRuntime  # torch: only for learned actors
 
             policy = PolicyRuntime(deterministic=False, seed=cfg.first_seed())
 

@@ -120,7 +120,7 @@ class Evaluator:
             return None
         env_steps = self.gate.env_steps
         # torch: imported once weights exist
-        from services.learner.core.policy import ObservationUnavailableError, PolicyRuntime, check_observation
+        from services.algorithms.policy import ObservationUnavailableError, PolicyRuntime, check_observation
 
         runtime = PolicyRuntime(deterministic=True, seed=self.cfg.seed_base)
         try:  # a fresh runtime: a failed load cannot leave a half-overwritten network behind

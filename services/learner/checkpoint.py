@@ -21,7 +21,7 @@ import torch
 from services.common import retention
 
 if TYPE_CHECKING:
-    from services.learner.core.trainer import Trainer
+    from services.algorithms.trainer import Trainer
 
 log = logging.getLogger(__name__)
 STEM, SUFFIX = "learner", ".pt"

@@ -21,15 +21,15 @@ import numpy as np
 import torch
 import tyro
 
+from services.algorithms.gasv2.algorithm import GasV2Config
+from services.algorithms.gasv2.config import PRESETS as DREAMER_PRESETS
+from services.algorithms.networks import PRESETS as NET_PRESETS
+from services.algorithms.rate_limiter import SampleToInsertRatio
+from services.algorithms.registry import lookup
+from services.algorithms.sac.algorithm import SacConfig
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.trainer import Trainer
 from services.common.config import ServiceConfig
-from services.learner.core.gasv2.algorithm import GasV2Config
-from services.learner.core.gasv2.config import PRESETS as DREAMER_PRESETS
-from services.learner.core.networks import PRESETS as NET_PRESETS
-from services.learner.core.rate_limiter import SampleToInsertRatio
-from services.learner.core.registry import lookup
-from services.learner.core.sac.algorithm import SacConfig
-from services.learner.core.sac.config import SacSettings
-from services.learner.core.trainer import Trainer
 
 DEVICES = re.compile(r"cpu|cuda(:\d+)?")
 """Learner devices: the CPU or a CUDA GPU (``cuda`` is the current one, ``cuda:N`` the N-th)."""

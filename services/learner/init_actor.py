@@ -22,16 +22,16 @@ import torch
 
 from proto.seal import is_sealed
 from proto.weights import WeightsBlob
+from services.algorithms.networks import build_actor
+from services.algorithms.registry import lookup
+from services.algorithms.sac.algorithm import SacConfig
+from services.algorithms.sac.policy import PolicySpec
+from services.algorithms.tensors import fitting_state
 from services.common import run_key, weights_file
-from services.learner.core.networks import build_actor
-from services.learner.core.registry import lookup
-from services.learner.core.sac.algorithm import SacConfig
-from services.learner.core.sac.policy import PolicySpec
-from services.learner.core.tensors import fitting_state
 
 if TYPE_CHECKING:
+    from services.algorithms.trainer import Trainer
     from services.learner.config import LearnerConfig
-    from services.learner.core.trainer import Trainer
 
 KEY_SEARCH_DEPTH = 4
 """Directories searched for the writer's ``run.key``: the file's own and the three above it."""

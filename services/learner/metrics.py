@@ -5,8 +5,8 @@ from __future__ import annotations
 import re
 from typing import Any
 
+from services.algorithms.trainer import GateReading
 from services.common.metrics import ServiceMetrics
-from services.learner.core.trainer import GateReading
 
 LOSSES = {
     name: f"{name}_loss"

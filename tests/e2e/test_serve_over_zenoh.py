@@ -21,6 +21,8 @@ import torch
 from proto.inference import ResetRequest
 from proto.topics import SERVE_RESET
 from proto.weights import WeightsBlob
+from services.algorithms.networks import PRESETS, build_actor
+from services.algorithms.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.common import run_key, weights_file
 from services.common.bus.base import Credentials
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
@@ -28,8 +30,6 @@ from services.common.mcap_io import read_messages, read_metadata
 from services.evaluator.config import EvaluatorConfig
 from services.evaluator.evaluation import EpisodeRunner
 from services.inference.adapter import sim_limits
-from services.learner.core.networks import PRESETS, build_actor
-from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.tasks import make_env
 from tests.helpers import find_free_port, stop_process
 

@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from proto.episode import Augmentation, Episode
+from services.algorithms.networks import NetConfig
+from services.algorithms.sac.algorithm import SacConfig
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.trainer import Trainer
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.learner.config import LearnerConfig, build_trainer
-from services.learner.core.networks import NetConfig
-from services.learner.core.sac.algorithm import SacConfig
-from services.learner.core.sac.config import SacSettings
-from services.learner.core.trainer import Trainer
 from tests.helpers import build_episode
 
 SIZE = 12

@@ -1,6 +1,6 @@
 """Small recurrent actor/critic with the learner's network interface, for testing the SAC math fast.
 
-Same contract as ``services.learner.core.networks``: images (B, T, C, H, W) and previous actions
+Same contract as ``services.algorithms.networks``: images (B, T, C, H, W) and previous actions
 (B, T, A) in; the actor returns (mean, log_std, state); the critic returns per-step features and
 twin Q values from them. Causal (a GRU), so padding after an episode cannot leak backwards.
 ``check_lerp_update`` checks a target-network update (soft or slow target) on small layers.

@@ -18,13 +18,13 @@ from proto.topics import EPISODES_RAW
 from proto.weights import WeightsBlob
 from services.actor.config import ActorConfig
 from services.actor.main import run
+from services.algorithms.networks import PRESETS, build_actor
+from services.algorithms.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.augmenter.core.pipeline import AugmentSettings, augment_episode
 from services.common.bus import Hub, InProcBus, Subscription
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsServer
 from services.episodes.rollout import policy_image, policy_input
-from services.learner.core.networks import PRESETS, build_actor
-from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.tasks.env import Observation
 
 pytestmark = pytest.mark.integration
@@ -195,7 +195,7 @@ def test_policy_input_needs_the_depth_image():
 
 @pytest.mark.timeout(180)
 def test_an_episode_with_a_non_finite_action_is_dropped_counted_and_the_actor_runs_on(monkeypatch):
-    from services.learner.core import policy as policy_module
+    from services.algorithms import policy as policy_module
 
     hub, episodes, server = _learner_side(_blob(9, "voxel"))
     registries = spy_metrics(monkeypatch)

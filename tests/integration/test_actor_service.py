@@ -57,10 +57,10 @@ def test_learned_actor_acts_with_broadcast_weights_and_waits_for_the_replay_gate
     from proto.control import ReplayGate
     from proto.topics import REPLAY_GATE
     from proto.weights import WeightsBlob
+    from services.algorithms.networks import PRESETS, build_actor
+    from services.algorithms.policy import PolicyRuntime, PolicySpec, actor_tensors
     from services.common.weights import WeightsServer
     from services.episodes.rollout import policy_image
-    from services.learner.core.networks import PRESETS, build_actor
-    from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 
     hub = Hub()
     observer = InProcBus(hub)

@@ -24,8 +24,8 @@ def _runtime():
     import torch
 
     from proto.weights import WeightsBlob
-    from services.learner.core.networks import PRESETS, build_actor
-    from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
+    from services.algorithms.networks import PRESETS, build_actor
+    from services.algorithms.policy import PolicyRuntime, PolicySpec, actor_tensors
 
     torch.manual_seed(0)
     spec = PolicySpec(PRESETS["cpu-small"])

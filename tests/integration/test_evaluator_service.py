@@ -41,8 +41,8 @@ def latest_beat(status, beats: list) -> Heartbeat | None:
 def test_evaluator_reports_versions_on_held_out_seeds_at_the_env_step_cadence(tmp_path):
     import torch
 
-    from services.learner.core.networks import PRESETS, build_actor
-    from services.learner.core.policy import PolicySpec, actor_tensors
+    from services.algorithms.networks import PRESETS, build_actor
+    from services.algorithms.policy import PolicySpec, actor_tensors
 
     hub = Hub()
     observer = InProcBus(hub)
@@ -254,8 +254,8 @@ def test_the_evaluation_at_the_budget_runs_final_episodes_held_out_seeds(tmp_pat
     policy and rollout: before the budget M seeds, at the budget the first M_final of the same ones."""
     from types import SimpleNamespace
 
+    import services.algorithms.policy as policy_module
     import services.evaluator.evaluation as evaluation
-    import services.learner.core.policy as policy_module
 
     rolled: list[int] = []
 
@@ -328,8 +328,8 @@ def test_a_depth_policy_is_refused_by_an_evaluator_without_the_depth_image(tmp_p
     import logging
     from types import SimpleNamespace
 
-    from services.learner.core.networks import build_actor
-    from services.learner.core.policy import PolicySpec, actor_tensors
+    from services.algorithms.networks import build_actor
+    from services.algorithms.policy import PolicySpec, actor_tensors
     from services.tasks import EnvSettings
     from tests.helpers.learner import TINY_NET
 

@@ -10,9 +10,9 @@ import torch
 
 from services.actor.config import ActorConfig
 from services.actor.rollout import RolloutActor
-from services.learner.core.gasv2.agent import GasV2Agent
-from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
-from services.learner.core.gasv2.config import PRESETS
+from services.algorithms.gasv2.agent import GasV2Agent
+from services.algorithms.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
+from services.algorithms.gasv2.config import PRESETS
 
 pytestmark = pytest.mark.integration
 

@@ -12,14 +12,14 @@ import torch
 
 from proto.topics import EPISODES_AUGMENTED
 from proto.weights import WeightsBlob
+from services.algorithms.networks import build_actor
+from services.algorithms.policy import PolicySpec, actor_tensors
+from services.algorithms.sac.config import SacSettings
 from services.cli import main as mea
 from services.common import run_key, weights_file
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.learner import init_actor
-from services.learner.core.networks import build_actor
-from services.learner.core.policy import PolicySpec, actor_tensors
-from services.learner.core.sac.config import SacSettings
 from tests.helpers.learner import TINY_NET, learner_episode, start_learner, tiny_learner_config, tiny_trainer
 
 pytestmark = pytest.mark.integration

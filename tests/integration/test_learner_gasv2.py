@@ -13,12 +13,12 @@ import pytest
 from mea_tools.bench.learner import random_dsa_episode
 from proto.discrete_actions import NAMES, to_vector
 from proto.topics import EPISODES_AUGMENTED, STATUS, WEIGHTS_ANNOUNCE
+from services.algorithms.policy import PolicyRuntime
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsClient
 from services.learner import checkpoint
 from services.learner.config import PRESETS
-from services.learner.core.policy import PolicyRuntime
 from tests.helpers.learner import learner_episode, start_learner
 
 pytestmark = pytest.mark.integration
@@ -87,9 +87,9 @@ def test_gasv2_learner_trains_publishes_a_latent_policy_and_resumes_its_lineage(
 
 
 def test_gasv2_presets_observe_dsa_and_train_on_the_configured_device():
+    from services.algorithms.gasv2.algorithm import GasV2Config
+    from services.algorithms.sac.algorithm import SacConfig
     from services.learner.config import LearnerConfig, build_trainer
-    from services.learner.core.gasv2.algorithm import GasV2Config
-    from services.learner.core.sac.algorithm import SacConfig
 
     with pytest.raises(ValueError, match="device must be cpu, cuda or cuda:N"):
         LearnerConfig(device="gpu")  # every learner may leave the CPU (tests/unit/test_learner_device.py)

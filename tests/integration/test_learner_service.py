@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from proto.topics import EPISODES_AUGMENTED, REPLAY_GATE, STATUS, WEIGHTS_ANNOUNCE
+from services.algorithms.policy import PolicyRuntime
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.common.weights import WeightsClient
 from services.learner import checkpoint
 from services.learner.config import LearnerConfig
-from services.learner.core.policy import PolicyRuntime
 from tests.helpers.learner import SIZE, TINY_NET, learner_episode, start_learner, tiny_learner_config
 
 pytestmark = pytest.mark.integration

@@ -43,8 +43,8 @@ def play(capsys, *args) -> tuple[int, str, str]:
 def blob() -> WeightsBlob:
     import torch
 
-    from services.learner.core.networks import PRESETS, build_actor
-    from services.learner.core.policy import PolicySpec, actor_tensors
+    from services.algorithms.networks import PRESETS, build_actor
+    from services.algorithms.policy import PolicySpec, actor_tensors
 
     torch.manual_seed(0)
     spec = PolicySpec(PRESETS["cpu-small"])
@@ -64,8 +64,8 @@ def _run_dir(tmp_path, blob: WeightsBlob):
 
 @pytest.mark.timeout(300)
 def test_a_runs_policy_renders_one_frame_per_observation(tmp_path, capsys, blob):
+    from services.algorithms.policy import PolicyRuntime
     from services.evaluator.evaluation import EpisodeRunner
-    from services.learner.core.policy import PolicyRuntime
     from services.tasks import make_env
 
     run = _run_dir(tmp_path, blob)

@@ -16,6 +16,8 @@ from proto.actions import ACTION_DIM
 from proto.inference import ActReply, ActRequest, EStop, ResetRequest
 from proto.topics import ESTOP, WEIGHTS_ANNOUNCE
 from proto.weights import WeightsBlob
+from services.algorithms.networks import PRESETS, build_actor
+from services.algorithms.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.common import weights_file
 from services.common.bus.base import Delivery
 from services.common.bus.inproc import Hub, InProcBus
@@ -30,8 +32,6 @@ from services.inference.adapter import RobotObservation, SimRobot, StepOutcome, 
 from services.inference.config import ServeConfig
 from services.inference.core.sessions import episode_seed
 from services.inference.robot import RobotConfig, RobotLink
-from services.learner.core.networks import PRESETS, build_actor
-from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.tasks import make_env
 
 SPEC = PolicySpec(PRESETS["cpu-small"])
@@ -130,9 +130,9 @@ def test_the_sim_robot_through_serve_runs_the_evaluators_episodes_action_for_act
 def test_a_gasv2_policy_on_the_surgical_arm_follows_the_executed_actions(tmp_path):
     """The hybrid controller replaces the policy's action on the approach: the robot reports what was
     executed and the server's latent state follows it, as the evaluator's runtime does."""
-    from services.learner.core.gasv2.agent import GasV2Agent
-    from services.learner.core.gasv2.config import PRESETS as GASV2_PRESETS
-    from services.learner.core.gasv2.policy import GasV2Spec
+    from services.algorithms.gasv2.agent import GasV2Agent
+    from services.algorithms.gasv2.config import PRESETS as GASV2_PRESETS
+    from services.algorithms.gasv2.policy import GasV2Spec
 
     task = "surgical_grasp_any"
     agent = GasV2Agent(GASV2_PRESETS["smoke"], seed=0)

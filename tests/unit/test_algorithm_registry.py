@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from proto.weights import ALGORITHMS as WIRE_ALGORITHMS
+from services.algorithms.registry import ALGORITHMS, lookup
 from services.learner.config import PRESETS
-from services.learner.core.registry import ALGORITHMS, lookup
 
 pytestmark = pytest.mark.unit
 

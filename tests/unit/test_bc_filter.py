@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from services.learner.core.batch import to_batch
-from services.learner.core.sac.agent import RecurrentSAC
-from services.learner.core.sac.config import SacSettings
-from services.learner.core.sac.losses import bc_loss, critique_demos
+from services.algorithms.batch import to_batch
+from services.algorithms.sac.agent import RecurrentSAC
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.losses import bc_loss, critique_demos
 from tests.unit.test_sac_options import NET, nets, replay_with
 
 pytestmark = pytest.mark.unit

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from services.learner.core.sac.agent import RecurrentSAC
-from services.learner.core.sac.config import SacSettings
-from services.learner.core.sac.losses import (
+from services.algorithms.sac.agent import RecurrentSAC
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.losses import (
     CRR_MAX_WEIGHT,
     PolicyOutputs,
     crr_loss,

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from services.learner.core.equivariant import (
+from services.algorithms.equivariant import (
     ActionHead,
     ActionLift,
     EquivariantLSTM,
@@ -19,7 +19,7 @@ from services.learner.core.equivariant import (
     LiftConv2d,
     group_pool,
 )
-from services.learner.core.groups import C4, D4, Group, transform_actions, transform_images, transform_regular
+from services.algorithms.groups import C4, D4, Group, transform_actions, transform_images, transform_regular
 
 pytestmark = pytest.mark.unit
 

@@ -11,11 +11,11 @@ from dataclasses import replace
 import pytest
 import torch
 
-from services.learner.core.gasv2.action_features import DISCRETE_FEATURES
-from services.learner.core.gasv2.agent import GasV2Agent, LatentPolicy, build_policy
-from services.learner.core.gasv2.chunks import ChunkBatch
-from services.learner.core.gasv2.config import PRESETS, DreamerConfig
-from services.learner.core.gasv2.rssm import RSSMState
+from services.algorithms.gasv2.action_features import DISCRETE_FEATURES
+from services.algorithms.gasv2.agent import GasV2Agent, LatentPolicy, build_policy
+from services.algorithms.gasv2.chunks import ChunkBatch
+from services.algorithms.gasv2.config import PRESETS, DreamerConfig
+from services.algorithms.gasv2.rssm import RSSMState
 from tests.unit.test_gasv2_math import random_batch
 
 pytestmark = [pytest.mark.unit, pytest.mark.usefixtures("one_torch_thread")]

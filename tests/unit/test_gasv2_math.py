@@ -10,9 +10,9 @@ import pytest
 import torch
 from torch import nn
 
-from services.learner.core.gasv2.action_features import DISCRETE_FEATURES
-from services.learner.core.gasv2.agent import GasV2Agent
-from services.learner.core.gasv2.behaviour import (
+from services.algorithms.gasv2.action_features import DISCRETE_FEATURES
+from services.algorithms.gasv2.agent import GasV2Agent
+from services.algorithms.gasv2.behaviour import (
     Imagination,
     actor_loss,
     behaviour_losses,
@@ -23,9 +23,9 @@ from services.learner.core.gasv2.behaviour import (
     trajectory_weights,
     update_slow_target,
 )
-from services.learner.core.gasv2.chunks import ChunkBatch
-from services.learner.core.gasv2.config import PRESETS
-from services.learner.core.gasv2.rssm import (
+from services.algorithms.gasv2.chunks import ChunkBatch
+from services.algorithms.gasv2.config import PRESETS
+from services.algorithms.gasv2.rssm import (
     RSSM,
     GRUCell,
     RSSMState,
@@ -34,7 +34,7 @@ from services.learner.core.gasv2.rssm import (
     kl_loss,
     sample_one_hot,
 )
-from services.learner.core.gasv2.world_model import Decoder, Encoder, WorldModel
+from services.algorithms.gasv2.world_model import Decoder, Encoder, WorldModel
 from tests.helpers.tiny_nets import check_lerp_update
 
 pytestmark = [pytest.mark.unit, pytest.mark.usefixtures("one_torch_thread")]

@@ -19,11 +19,11 @@ import pytest
 import torch
 
 from proto.episode import Augmentation, Episode
+from services.algorithms.gasv2.action_features import TOGGLE
+from services.algorithms.gasv2.chunk_replay import ChunkReplay, ChunkSample, to_chunk_batch
+from services.algorithms.gasv2.chunks import ChunkBatch
+from services.algorithms.replay import SequenceReplay
 from services.learner.checkpoint import _to_numpy, _to_torch
-from services.learner.core.gasv2.action_features import TOGGLE
-from services.learner.core.gasv2.chunk_replay import ChunkReplay, ChunkSample, to_chunk_batch
-from services.learner.core.gasv2.chunks import ChunkBatch
-from services.learner.core.replay import SequenceReplay
 from services.observation import image_format
 from services.observation.dsa import (
     SURGICAL_GRASP_ANY,

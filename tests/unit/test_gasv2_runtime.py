@@ -14,13 +14,13 @@ from mea_tools.bench.learner import APPROACH_STEPS, random_dsa_episode
 from proto.actions import JAW
 from proto.discrete_actions import NAMES, TOGGLE, to_vector
 from proto.weights import WeightsBlob
-from services.learner.core.gasv2.action_features import DISCRETE_FEATURES, features
-from services.learner.core.gasv2.agent import GasV2Agent
-from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
-from services.learner.core.gasv2.config import PRESETS
-from services.learner.core.gasv2.policy import GasV2Spec, LatentRuntime
-from services.learner.core.networks import PRESETS as NET_PRESETS
-from services.learner.core.policy import PolicyRuntime, PolicySpec, blob_observation, check_observation
+from services.algorithms.gasv2.action_features import DISCRETE_FEATURES, features
+from services.algorithms.gasv2.agent import GasV2Agent
+from services.algorithms.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
+from services.algorithms.gasv2.config import PRESETS
+from services.algorithms.gasv2.policy import GasV2Spec, LatentRuntime
+from services.algorithms.networks import PRESETS as NET_PRESETS
+from services.algorithms.policy import PolicyRuntime, PolicySpec, blob_observation, check_observation
 
 CFG = PRESETS["smoke"]
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from services.learner.core.groups import (
+from services.algorithms.groups import (
     C4,
     D4,
     Group,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from services.learner.core.policy import images_from_codes
+from services.algorithms.policy import images_from_codes
 from services.observation import image_format as fmt
 from services.observation.depth_image import policy_images
 from services.observation.projection import dequantize, quantize, quantized_observations

@@ -21,14 +21,14 @@ from mea_tools.bench.imitation import (
 )
 from services.actor.config import ActorConfig
 from services.actor.rollout import RolloutActor
+from services.algorithms.batch import to_batch
+from services.algorithms.policy import PolicyRuntime
+from services.algorithms.replay import SequenceReplay
+from services.algorithms.sac.losses import bc_loss
 from services.augmenter.core.pipeline import augment_episode, with_images
 from services.common.config import ServiceConfig
 from services.episodes.rollout import policy_input
 from services.evaluator.config import EvaluatorConfig
-from services.learner.core.batch import to_batch
-from services.learner.core.policy import PolicyRuntime
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac.losses import bc_loss
 from services.plan import augmenter_config, learner_config
 from services.tasks import make_env
 

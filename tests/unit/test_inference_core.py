@@ -11,10 +11,10 @@ import torch
 from proto.actions import ACTION_DIM, DELTA_XYZ, JAW
 from proto.inference import ActRequest, ResetRequest
 from proto.weights import WeightsBlob
+from services.algorithms.networks import PRESETS, build_actor
+from services.algorithms.policy import PolicyRuntime, PolicySpec, actor_tensors
 from services.inference.core.envelope import Limits
 from services.inference.core.sessions import InferenceCore, ServeSettings, SwapRefusedError
-from services.learner.core.networks import PRESETS, build_actor
-from services.learner.core.policy import PolicyRuntime, PolicySpec, actor_tensors
 from tests.helpers.learner import SIZE, TINY_NET
 
 TINY = TINY_NET

@@ -20,18 +20,18 @@ import pytest
 import torch
 
 from proto.topics import EPISODES_AUGMENTED, STATUS, WEIGHTS_ANNOUNCE
+from services.algorithms.batch import to_batch
+from services.algorithms.networks import build_actor, build_critic
+from services.algorithms.policy import PolicyRuntime
+from services.algorithms.sac.agent import RecurrentSAC
+from services.algorithms.sac.algorithm import SacConfig
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.trainer import MetricsWindow, Trainer
 from services.common import config
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.learner import checkpoint, init_actor
 from services.learner.config import LearnerConfig, build_trainer, check_device
-from services.learner.core.batch import to_batch
-from services.learner.core.networks import build_actor, build_critic
-from services.learner.core.policy import PolicyRuntime
-from services.learner.core.sac.agent import RecurrentSAC
-from services.learner.core.sac.algorithm import SacConfig
-from services.learner.core.sac.config import SacSettings
-from services.learner.core.trainer import MetricsWindow, Trainer
 from services.run_config import RunConfig, read_resume
 from tests.helpers.learner import SIZE, TINY_NET, learner_episode, start_learner, tiny_learner_config
 

@@ -6,10 +6,10 @@ import numpy as np
 import torch
 
 from mea_tools.bench.learner import random_dsa_episode
+from services.algorithms.gasv2.agent import GasV2Agent
+from services.algorithms.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
+from services.algorithms.gasv2.config import PRESETS
 from services.common.metrics import ServiceMetrics
-from services.learner.core.gasv2.agent import GasV2Agent
-from services.learner.core.gasv2.chunk_replay import ChunkReplay, to_chunk_batch
-from services.learner.core.gasv2.config import PRESETS
 from services.learner.metrics import learner_metrics, record_update
 
 

@@ -24,13 +24,13 @@ import numpy as np
 import pytest
 import torch
 
+from services.algorithms.batch import to_batch
+from services.algorithms.networks import build_actor, build_critic
+from services.algorithms.policy import images_from_codes
+from services.algorithms.privileged import STATE_DIM
+from services.algorithms.replay import SequenceReplay
+from services.algorithms.sac.agent import RecurrentSAC
 from services.learner.config import PRESETS
-from services.learner.core.batch import to_batch
-from services.learner.core.networks import build_actor, build_critic
-from services.learner.core.policy import images_from_codes
-from services.learner.core.privileged import STATE_DIM
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac.agent import RecurrentSAC
 from tests.helpers import build_episode
 
 pytestmark = pytest.mark.unit

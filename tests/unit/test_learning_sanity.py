@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 import torch
 
-from services.learner.core.batch import to_batch
-from services.learner.core.networks import NetConfig, build_actor, build_critic
-from services.learner.core.policy import images_from_codes
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac.agent import RecurrentSAC
-from services.learner.core.sac.config import SacSettings
-from services.learner.core.sac.losses import deterministic_action
+from services.algorithms.batch import to_batch
+from services.algorithms.networks import NetConfig, build_actor, build_critic
+from services.algorithms.policy import images_from_codes
+from services.algorithms.replay import SequenceReplay
+from services.algorithms.sac.agent import RecurrentSAC
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.losses import deterministic_action
 from tests.helpers import build_episode
 
 SIZE = 12

@@ -13,8 +13,8 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from services.learner.core.groups import get_group, transform_actions, transform_images, transform_regular
-from services.learner.core.networks import PRESETS, Actor, Critic, NetConfig, build_actor, build_critic
+from services.algorithms.groups import get_group, transform_actions, transform_images, transform_regular
+from services.algorithms.networks import PRESETS, Actor, Critic, NetConfig, build_actor, build_critic
 
 pytestmark = pytest.mark.unit
 

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from proto.weights import WeightsBlob
-from services.learner.core.networks import build_actor
-from services.learner.core.policy import (
+from services.algorithms.networks import build_actor
+from services.algorithms.policy import (
     ObservationUnavailableError,
     PolicyRuntime,
     PolicySpec,
@@ -18,7 +18,7 @@ from services.learner.core.policy import (
     check_observation,
     images_from_codes,
 )
-from services.learner.core.sac.losses import deterministic_action
+from services.algorithms.sac.losses import deterministic_action
 from tests.helpers.learner import SIZE, TINY_NET
 
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from services.learner.core.networks import PRESETS, StateCritic, build_critic
-from services.learner.core.privileged import STATE_DIM, critic_state, episode_critic_state, yaw_of
-from services.learner.core.sac.losses import Batch
+from services.algorithms.networks import PRESETS, StateCritic, build_critic
+from services.algorithms.privileged import STATE_DIM, critic_state, episode_critic_state, yaw_of
+from services.algorithms.sac.losses import Batch
 from tests.helpers import build_episode
 
 pytestmark = pytest.mark.unit

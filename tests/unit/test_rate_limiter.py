@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.learner.core.rate_limiter import UNLIMITED, MinSize, SampleToInsertRatio
+from services.algorithms.rate_limiter import UNLIMITED, MinSize, SampleToInsertRatio
 
 pytestmark = pytest.mark.unit
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from proto.episode import Augmentation, Episode
-from services.learner.core.replay import SequenceReplay, public_reference_bytes
-from services.learner.core.replay_batch import SequenceBatch
+from services.algorithms.replay import SequenceReplay, public_reference_bytes
+from services.algorithms.replay_batch import SequenceBatch
 from tests.helpers import build_episode
 
 pytestmark = pytest.mark.unit

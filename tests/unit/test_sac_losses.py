@@ -9,9 +9,9 @@ import pytest
 import torch
 from torch import nn
 
-from services.learner.core.sac.agent import RecurrentSAC
-from services.learner.core.sac.config import SacSettings
-from services.learner.core.sac.losses import (
+from services.algorithms.sac.agent import RecurrentSAC
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.losses import (
     Batch,
     PolicyOutputs,
     actor_loss,

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from services.learner.core.batch import to_batch
-from services.learner.core.equivariant import GroupLayerNorm
-from services.learner.core.groups import get_group, transform_actions, transform_images, transform_regular
-from services.learner.core.networks import NetConfig, build_actor, build_critic
-from services.learner.core.privileged import STATE_DIM
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac.agent import RecurrentSAC
-from services.learner.core.sac.config import SacSettings
-from services.learner.core.sac.losses import (
+from services.algorithms.batch import to_batch
+from services.algorithms.equivariant import GroupLayerNorm
+from services.algorithms.groups import get_group, transform_actions, transform_images, transform_regular
+from services.algorithms.networks import NetConfig, build_actor, build_critic
+from services.algorithms.privileged import STATE_DIM
+from services.algorithms.replay import SequenceReplay
+from services.algorithms.sac.agent import RecurrentSAC
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.losses import (
     Batch,
     actor_loss,
     bc_loss,

@@ -1,4 +1,4 @@
-"""The learner's training step and replay-gate arithmetic (``services.learner.core.trainer``), without
+"""The learner's training step and replay-gate arithmetic (``services.algorithms.trainer``), without
 a bus: how many env steps the gate allows, when an update may run, what a step returns."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.learner.core.rate_limiter import SampleToInsertRatio
-from services.learner.core.trainer import allowed_steps
+from services.algorithms.rate_limiter import SampleToInsertRatio
+from services.algorithms.trainer import allowed_steps
 from tests.helpers.learner import learner_episode, tiny_trainer
 
 pytestmark = pytest.mark.unit

@@ -22,8 +22,8 @@ import torch
 
 from mea_tools.bench.learner import random_dsa_episode
 from proto.episode import Episode
+from services.algorithms.gasv2.algorithm import GasV2Config
 from services.learner.config import PRESETS, build_trainer
-from services.learner.core.gasv2.algorithm import GasV2Config
 from tests.helpers.learner import learner_episode, policy_images
 
 pytestmark = [pytest.mark.unit, pytest.mark.timeout(300)]

@@ -14,8 +14,8 @@ from proto.actions import ACTION_DIM, JAW
 from proto.episode import DSA_TASKS
 from proto.inference import ActReply, ActRequest, ResetReply, ResetRequest
 from proto.weights import WeightsBlob, tensors_digest
+from services.algorithms.policy import PolicyRuntime, blob_observation
 from services.inference.core.envelope import Envelope, Limits
-from services.learner.core.policy import PolicyRuntime, blob_observation
 from services.observation.projection import segment_policy_images
 
 REFUSAL_REASONS = ("not_newer", "other_run", "digest", "load")

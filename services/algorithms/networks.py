@@ -1,6 +1,6 @@
 """Equi-RSAC actor and critic (C4 / D4 equivariant) and their non-equivariant RSAC twin.
 
-Design notes: docs/architecture-notes.md, services/learner/core/networks.py."""
+Design notes: docs/architecture-notes.md, services/algorithms/networks.py."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from proto.actions import ACTION_DIM
-from services.learner.core.equivariant import (
+from services.algorithms.equivariant import (
     ActionHead,
     ActionLift,
     EquivariantLSTM,
@@ -24,8 +24,8 @@ from services.learner.core.equivariant import (
     LiftConv2d,
     LSTMState,
 )
-from services.learner.core.groups import Group, get_group
-from services.learner.core.privileged import CANONICAL_ANGLE, STATE_DIM
+from services.algorithms.groups import Group, get_group
+from services.algorithms.privileged import CANONICAL_ANGLE, STATE_DIM
 
 __all__ = ["PRESETS", "Actor", "Critic", "NetConfig", "StateCritic", "build_actor", "build_critic"]
 

@@ -24,9 +24,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from services.learner.core.gasv2.chunks import ChunkBatch
-from services.learner.core.gasv2.config import DreamerConfig
-from services.learner.core.gasv2.rssm import (
+from services.algorithms.gasv2.chunks import ChunkBatch
+from services.algorithms.gasv2.config import DreamerConfig
+from services.algorithms.gasv2.rssm import (
     RSSM,
     RSSMState,
     detach_state,
@@ -34,7 +34,7 @@ from services.learner.core.gasv2.rssm import (
     gumbel_argmax,
     select_states,
 )
-from services.learner.core.gasv2.world_model import WorldModel, mlp
+from services.algorithms.gasv2.world_model import WorldModel, mlp
 
 
 class LatentActor(nn.Module):

@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from services.learner.core.sac.config import SacSettings
-from services.learner.core.sac.losses import (
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.losses import (
     Batch,
     DemoCritique,
     PolicyOutputs,
@@ -36,7 +36,7 @@ from services.learner.core.sac.losses import (
     policy_outputs,
     soft_update,
 )
-from services.learner.core.tensors import actor_tensors
+from services.algorithms.tensors import actor_tensors
 
 Grads = tuple[Tensor | None, ...]
 

@@ -1,6 +1,6 @@
 """What the state critic reads: the simulator's privileged state of each step, in a canonical frame.
 
-Design notes: docs/architecture-notes.md, services/learner/core/privileged.py."""
+Design notes: docs/architecture-notes.md, services/algorithms/privileged.py."""
 
 from __future__ import annotations
 

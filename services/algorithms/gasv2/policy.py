@@ -23,10 +23,10 @@ import torch
 from proto.actions import ACTION_DIM, JAW
 from proto.discrete_actions import to_vector
 from proto.weights import WeightsBlob
-from services.learner.core.gasv2.action_features import FEATURE_DIM, features
-from services.learner.core.gasv2.agent import LatentPolicy, build_policy
-from services.learner.core.gasv2.config import DreamerConfig
-from services.learner.core.tensors import images_from_codes, rebuilt
+from services.algorithms.gasv2.action_features import FEATURE_DIM, features
+from services.algorithms.gasv2.agent import LatentPolicy, build_policy
+from services.algorithms.gasv2.config import DreamerConfig
+from services.algorithms.tensors import images_from_codes, rebuilt
 
 OBSERVATION = "dsa"
 """GASv2 observes the env's DSA image (Surgical Grasp Any: 3 x 64 x 64 uint8)."""

@@ -1,6 +1,6 @@
 """The C4 / D4 symmetry groups and how they act on images, actions and regular fields.
 
-Design notes: docs/architecture-notes.md, services/learner/core/groups.py."""
+Design notes: docs/architecture-notes.md, services/algorithms/groups.py."""
 
 from __future__ import annotations
 

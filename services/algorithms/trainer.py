@@ -1,7 +1,7 @@
 """The learner's training step and replay-gate arithmetic, for any algorithm (``algorithm``): its
 replay, the rate limiter and its learner, nothing else.
 
-Design notes: docs/architecture-notes.md, services/learner/core/trainer.py."""
+Design notes: docs/architecture-notes.md, services/algorithms/trainer.py."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from proto.control import ReplayGate
-from services.learner.core.algorithm import Algorithm, AlgorithmConfig, Replay
-from services.learner.core.rate_limiter import RateLimiter
+from services.algorithms.algorithm import Algorithm, AlgorithmConfig, Replay
+from services.algorithms.rate_limiter import RateLimiter
 
 if TYPE_CHECKING:
     from proto.episode import Episode

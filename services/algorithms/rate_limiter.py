@@ -1,6 +1,6 @@
 """Sample-to-insert ratio limiting between env-step producers (actors) and gradient updates.
 
-Design notes: docs/architecture-notes.md, services/learner/core/rate_limiter.py."""
+Design notes: docs/architecture-notes.md, services/algorithms/rate_limiter.py."""
 
 from __future__ import annotations
 

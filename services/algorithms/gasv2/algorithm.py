@@ -12,12 +12,12 @@ import numpy as np
 import torch
 import tyro
 
-from services.learner.core.gasv2.agent import GasV2Agent
-from services.learner.core.gasv2.chunk_replay import ChunkReplay, ChunkSample, to_chunk_batch
-from services.learner.core.gasv2.chunks import ChunkBatch
-from services.learner.core.gasv2.config import PRESETS as DREAMER_PRESETS
-from services.learner.core.gasv2.config import DreamerConfig
-from services.learner.core.gasv2.policy import OBSERVATION, GasV2Spec
+from services.algorithms.gasv2.agent import GasV2Agent
+from services.algorithms.gasv2.chunk_replay import ChunkReplay, ChunkSample, to_chunk_batch
+from services.algorithms.gasv2.chunks import ChunkBatch
+from services.algorithms.gasv2.config import PRESETS as DREAMER_PRESETS
+from services.algorithms.gasv2.config import DreamerConfig
+from services.algorithms.gasv2.policy import OBSERVATION, GasV2Spec
 
 NAME = "gasv2"
 

@@ -1,7 +1,7 @@
 """GASv2's replay: whole Surgical Grasp Any episodes in ``SequenceReplay``'s arena, sampled as
 fixed-length windows in DreamerV2's step convention (``chunks.ChunkBatch``).
 
-Design notes: docs/architecture-notes.md, services/learner/core/gasv2/chunk_replay.py."""
+Design notes: docs/architecture-notes.md, services/algorithms/gasv2/chunk_replay.py."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from services.learner.core.gasv2.action_features import features
-from services.learner.core.gasv2.chunks import ChunkBatch
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.tensors import images_from_codes
+from services.algorithms.gasv2.action_features import features
+from services.algorithms.gasv2.chunks import ChunkBatch
+from services.algorithms.replay import SequenceReplay
+from services.algorithms.tensors import images_from_codes
 from services.observation.dsa import STATE_ROW, decode_state_rows
 
 if TYPE_CHECKING:

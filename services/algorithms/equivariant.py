@@ -1,6 +1,6 @@
 """C4 / D4 equivariant layers in plain PyTorch (weight-tied group convolutions, Cohen & Welling 2016).
 
-Design notes: docs/architecture-notes.md, services/learner/core/equivariant.py."""
+Design notes: docs/architecture-notes.md, services/algorithms/equivariant.py."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from proto.actions import ACTION_DIM
-from services.learner.core.groups import Group, action_matrix, inverse, transform_images
+from services.algorithms.groups import Group, action_matrix, inverse, transform_images
 
 __all__ = [
     "ActionHead",

@@ -13,10 +13,10 @@ import torch
 
 from proto.actions import ACTION_DIM
 from proto.weights import WeightsBlob
-from services.learner.core.algorithm import OBSERVATIONS
-from services.learner.core.networks import Actor, NetConfig, build_actor
-from services.learner.core.sac.losses import deterministic_action, tanh_gaussian_sample
-from services.learner.core.tensors import images_from_codes, rebuilt
+from services.algorithms.algorithm import OBSERVATIONS
+from services.algorithms.networks import Actor, NetConfig, build_actor
+from services.algorithms.sac.losses import deterministic_action, tanh_gaussian_sample
+from services.algorithms.tensors import images_from_codes, rebuilt
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from services.learner.core.batch import to_batch
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.sac.losses import Batch, bc_loss
+from services.algorithms.batch import to_batch
+from services.algorithms.replay import SequenceReplay
+from services.algorithms.sac.losses import Batch, bc_loss
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """Storage of the sequence replay: a preallocated arena of uint8 observation rows, inserts with
 their validation, and eviction. Sampling and checkpoint state are ``replay.SequenceReplay``'s.
 
-Design notes: docs/architecture-notes.md, services/learner/core/replay_storage.py."""
+Design notes: docs/architecture-notes.md, services/algorithms/replay_storage.py."""
 
 from __future__ import annotations
 

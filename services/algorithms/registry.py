@@ -4,11 +4,11 @@ knows them all: everything else asks here, or asks the config it was given."""
 
 from __future__ import annotations
 
-from services.learner.core.algorithm import Registration
-from services.learner.core.gasv2.algorithm import GasV2Config
-from services.learner.core.gasv2.policy import GasV2Spec, LatentRuntime
-from services.learner.core.sac.algorithm import SacConfig
-from services.learner.core.sac.policy import ActorRuntime, PolicySpec
+from services.algorithms.algorithm import Registration
+from services.algorithms.gasv2.algorithm import GasV2Config
+from services.algorithms.gasv2.policy import GasV2Spec, LatentRuntime
+from services.algorithms.sac.algorithm import SacConfig
+from services.algorithms.sac.policy import ActorRuntime, PolicySpec
 
 SAC = Registration(SacConfig, PolicySpec.from_json, ActorRuntime)
 GASV2 = Registration(GasV2Config, GasV2Spec.from_json, LatentRuntime)

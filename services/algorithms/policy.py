@@ -15,10 +15,10 @@ import torch
 
 from proto.episode import DSA_TASKS
 from proto.weights import WeightsBlob
-from services.learner.core.algorithm import OBSERVATIONS, AlgorithmRuntime, Spec
-from services.learner.core.registry import lookup
-from services.learner.core.sac.policy import PolicySpec
-from services.learner.core.tensors import actor_tensors, images_from_codes
+from services.algorithms.algorithm import OBSERVATIONS, AlgorithmRuntime, Spec
+from services.algorithms.registry import lookup
+from services.algorithms.sac.policy import PolicySpec
+from services.algorithms.tensors import actor_tensors, images_from_codes
 
 
 class ObservationUnavailableError(ValueError):

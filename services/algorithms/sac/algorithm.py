@@ -12,16 +12,16 @@ import numpy as np
 import torch
 import tyro
 
-from services.learner.core.batch import to_batch
-from services.learner.core.networks import PRESETS as NET_PRESETS
-from services.learner.core.networks import NetConfig, build_actor, build_critic
-from services.learner.core.privileged import STATE_DIM
-from services.learner.core.replay import SequenceReplay
-from services.learner.core.replay_batch import SequenceBatch
-from services.learner.core.sac.agent import RecurrentSAC
-from services.learner.core.sac.config import SacSettings
-from services.learner.core.sac.losses import Batch
-from services.learner.core.sac.policy import PolicySpec
+from services.algorithms.batch import to_batch
+from services.algorithms.networks import PRESETS as NET_PRESETS
+from services.algorithms.networks import NetConfig, build_actor, build_critic
+from services.algorithms.privileged import STATE_DIM
+from services.algorithms.replay import SequenceReplay
+from services.algorithms.replay_batch import SequenceBatch
+from services.algorithms.sac.agent import RecurrentSAC
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.losses import Batch
+from services.algorithms.sac.policy import PolicySpec
 
 GROUPS = {"equi_rsac": ("c4", "d4"), "rsac": ("none",)}
 """The two SAC learners by name and their networks' symmetry groups: Equi-RSAC's C4 or D4 layers,

@@ -20,19 +20,19 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from services.learner.core.gasv2.action_features import DISCRETE_FEATURES
-from services.learner.core.gasv2.behaviour import (
+from services.algorithms.gasv2.action_features import DISCRETE_FEATURES
+from services.algorithms.gasv2.behaviour import (
     LatentActor,
     LatentCritic,
     behaviour_losses,
     start_states,
     update_slow_target,
 )
-from services.learner.core.gasv2.chunks import ChunkBatch
-from services.learner.core.gasv2.config import DreamerConfig
-from services.learner.core.gasv2.rssm import RSSM, RSSMState, features
-from services.learner.core.gasv2.world_model import Encoder, WorldModel
-from services.learner.core.tensors import actor_tensors
+from services.algorithms.gasv2.chunks import ChunkBatch
+from services.algorithms.gasv2.config import DreamerConfig
+from services.algorithms.gasv2.rssm import RSSM, RSSMState, features
+from services.algorithms.gasv2.world_model import Encoder, WorldModel
+from services.algorithms.tensors import actor_tensors
 
 BEHAVIOUR_METRICS = ("actor_loss", "critic_loss", "actor_entropy", "advantage", "imag_return", "imag_reward",
                      "imag_discount", "imag_value", "actor_grad_norm", "critic_grad_norm")  # fmt: skip

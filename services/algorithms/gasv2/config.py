@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
-from services.learner.core.gasv2.action_features import FEATURE_DIM
+from services.algorithms.gasv2.action_features import FEATURE_DIM
 
 ACTIVATIONS = ("elu", "relu", "silu", "tanh")
 REWARD_TRANSFORMS = ("tanh", "identity")

@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from services.learner.core.replay_batch import SequenceBatch
-from services.learner.core.sac.losses import Batch
-from services.learner.core.tensors import images_from_codes
+from services.algorithms.replay_batch import SequenceBatch
+from services.algorithms.sac.losses import Batch
+from services.algorithms.tensors import images_from_codes
 
 
 def to_device(array: np.ndarray, device: torch.device, dtype: torch.dtype | None = None) -> torch.Tensor:

@@ -18,9 +18,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from proto.actions import ACTION_DIM
-from services.learner.core.privileged import episode_critic_state
-from services.learner.core.replay_batch import SequenceBatch
-from services.learner.core.replay_storage import ReplayStorage
+from services.algorithms.privileged import episode_critic_state
+from services.algorithms.replay_batch import SequenceBatch
+from services.algorithms.replay_storage import ReplayStorage
 from services.observation import image_format
 
 if TYPE_CHECKING:

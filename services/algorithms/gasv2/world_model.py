@@ -17,9 +17,9 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from services.learner.core.gasv2.chunks import ChunkBatch
-from services.learner.core.gasv2.config import DreamerConfig, conv_out_size
-from services.learner.core.gasv2.rssm import (
+from services.algorithms.gasv2.chunks import ChunkBatch
+from services.algorithms.gasv2.config import DreamerConfig, conv_out_size
+from services.algorithms.gasv2.rssm import (
     RSSM,
     RSSMState,
     activation,

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from services.learner.core.gasv2.config import DreamerConfig
+from services.algorithms.gasv2.config import DreamerConfig
 
 
 class RSSMState(NamedTuple):
