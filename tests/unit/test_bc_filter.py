@@ -11,7 +11,7 @@ import torch
 from services.algorithms.batch import to_batch
 from services.algorithms.sac.agent import RecurrentSAC
 from services.algorithms.sac.config import SacSettings
-from services.algorithms.sac.losses import bc_loss, critique_demos
+from services.algorithms.sac.losses import action_values, bc_loss, critique_demos
 from tests.unit.test_sac_options import NET, nets, replay_with
 
 pytestmark = pytest.mark.unit
@@ -38,7 +38,8 @@ def test_filter_keeps_where_the_demo_action_scores_higher():
     B, L, _ = batch.actions.shape
     critic = LinearQ([0.0, 1.0, 0.0, 0.0, 0.0])  # Q = dx
     mean = torch.zeros(B, L + 1, 5)  # tanh(0) = 0: the policy's dx is 0
-    c = critique_demos(critic, torch.zeros(B, L + 1, 3), batch, mean)
+    feats = torch.zeros(B, L + 1, 3)
+    c = critique_demos(critic, feats, batch, action_values(critic, feats, batch, mean))
     expect = (batch.actions[..., 1] > 0).float()
     torch.testing.assert_close(c.keep, expect)
     demo = batch.mask * batch.demo[:, None]

@@ -15,6 +15,7 @@ from services.algorithms.sac.config import SacSettings
 from services.algorithms.sac.losses import (
     CRR_MAX_WEIGHT,
     PolicyOutputs,
+    action_values,
     crr_loss,
     crr_weights,
     tanh_gaussian_log_prob,
@@ -46,10 +47,11 @@ def test_weights_binary_and_exponential_follow_the_advantage():
     critic = LinearQ([0.0, 1.0, 0.0, 0.0, 0.0])  # Q = dx; the policy's dx is tanh(0) = 0
     mean, feats = torch.zeros(B, L + 1, 5), torch.zeros(B, L + 1, 3)
     adv = batch.actions[..., 1]
-    torch.testing.assert_close(crr_weights(critic, feats, batch, mean, 0.0), (adv > 0).float())
-    torch.testing.assert_close(crr_weights(critic, feats, batch, mean, 0.5), torch.exp(adv / 0.5))
+    values = action_values(critic, feats, batch, mean)
+    torch.testing.assert_close(crr_weights(values, 0.0), (adv > 0).float())
+    torch.testing.assert_close(crr_weights(values, 0.5), torch.exp(adv / 0.5))
     big = LinearQ([0.0, 100.0, 0.0, 0.0, 0.0])
-    assert float(crr_weights(big, feats, batch, mean, 0.5).max()) == CRR_MAX_WEIGHT
+    assert float(crr_weights(action_values(big, feats, batch, mean), 0.5).max()) == CRR_MAX_WEIGHT
 
 
 def test_crr_loss_counts_only_weighted_actions():

@@ -20,9 +20,11 @@ from torch import Tensor, nn
 
 from services.algorithms.sac.config import SacSettings
 from services.algorithms.sac.losses import (
+    ActionValues,
     Batch,
     DemoCritique,
     PolicyOutputs,
+    action_values,
     actor_loss,
     alpha_loss,
     bc_loss,
@@ -51,8 +53,9 @@ class _Forward:
     """Critic targets y_t (B, L), no gradient."""
     critique: DemoCritique | None
     """The target critic's reading of the demonstrations (None without them)."""
-    target_feats: Tensor
-    """The target critic's features of the batch (no gradient)."""
+    values: ActionValues | None
+    """The target critic's values of the replayed and the policy's actions (None: neither the
+    critique nor CRR reads them, a batch without demos under the SAC objective)."""
     feats: Tensor | None
     """The critic's features with gradients, from a shared encoder's pass (None: ``critic_loss`` runs it)."""
     embedding: Tensor | None
@@ -150,7 +153,8 @@ class RecurrentSAC:
         warm = self.updates >= s.actor_warmup_updates
         crr = s.actor_objective == "crr"
         if crr:
-            weights = crr_weights(self.critic_target, fwd.target_feats, batch, fwd.policy.mean, s.crr_beta)
+            assert fwd.values is not None  # _forward computes them for crr
+            weights = crr_weights(fwd.values, s.crr_beta)
             pi_loss = crr_loss(fwd.policy, batch, weights)
         else:
             pi_loss = actor_loss(self.critic, feats, batch, fwd.policy, alpha)
@@ -204,8 +208,11 @@ class RecurrentSAC:
         targets = critic_targets(self.critic_target, batch, policy, alpha, s.gamma, s.n_step, target_feats)
         if s.return_bound:
             targets = bounded_targets(targets, batch, s.gamma)
-        critique = critique_demos(self.critic_target, target_feats, batch, policy.mean)
-        return _Forward(policy, targets, critique, target_feats, feats, embedding)
+        values = None
+        if batch.demo is not None or s.actor_objective == "crr":
+            values = action_values(self.critic_target, target_feats, batch, policy.mean)
+        critique = None if values is None else critique_demos(self.critic_target, target_feats, batch, values)
+        return _Forward(policy, targets, critique, values, feats, embedding)
 
     def _bc_loss(self, batch: Batch, fwd: _Forward) -> Tensor:
         """J_bc on the demonstration transitions (those the Q filter keeps, with ``bc_filter``); with a

@@ -183,17 +183,34 @@ CRR_MAX_WEIGHT = 20.0
 """Cap of exp(A / beta): one transition never outweighs the batch (Wang et al. 2020 cap at 20)."""
 
 
-def crr_weights(critic: nn.Module, feats: Tensor, batch: Batch, mean: Tensor, beta: float) -> Tensor:
-    """(B, L) weight of each replayed action, no gradient: with A = min Q(h, a) - min Q(h, tanh(mean)),
-    1[A > 0] (``beta`` 0) or min(exp(A / beta), ``CRR_MAX_WEIGHT``)."""
+@dataclass(frozen=True)
+class ActionValues:
+    """A critic's min-Q of each replayed action and of the policy's mean action at the same step,
+    (B, L), no gradient: read by the Q filter and the critique (``critique_demos``) and by CRR."""
+
+    replayed: Tensor  # min Q(h_t, a_t)
+    policy: Tensor  # min Q(h_t, tanh(mean_t))
+
+    @property
+    def advantage(self) -> Tensor:
+        return self.replayed - self.policy
+
+
+def action_values(critic: nn.Module, feats: Tensor, batch: Batch, mean: Tensor) -> ActionValues:
+    """``ActionValues`` from critic features ``feats`` (B, L+1, F) and the policy's pre-tanh ``mean``."""
     with torch.no_grad():
         f = feats[:, :-1].detach()
-        adv = torch.min(*critic.q(f, batch.actions)) - torch.min(
-            *critic.q(f, torch.tanh(mean[:, :-1].detach()))
-        )
-        if beta == 0.0:
-            return (adv > 0).to(adv.dtype)
-        return torch.exp(adv / beta).clamp_max(CRR_MAX_WEIGHT)
+        replayed = torch.min(*critic.q(f, batch.actions))
+        return ActionValues(replayed, torch.min(*critic.q(f, torch.tanh(mean[:, :-1].detach()))))
+
+
+def crr_weights(values: ActionValues, beta: float) -> Tensor:
+    """(B, L) weight of each replayed action, no gradient: with A its advantage over the policy's mean
+    action, 1[A > 0] (``beta`` 0) or min(exp(A / beta), ``CRR_MAX_WEIGHT``)."""
+    adv = values.advantage
+    if beta == 0.0:
+        return (adv > 0).to(adv.dtype)
+    return torch.exp(adv / beta).clamp_max(CRR_MAX_WEIGHT)
 
 
 def crr_loss(policy: PolicyOutputs, batch: Batch, weights: Tensor) -> Tensor:
@@ -230,21 +247,21 @@ class DemoCritique:
     pi_gap: Tensor  # () mean Q(h, a_demo) - Q(h, tanh(mean))
 
 
-def critique_demos(critic: nn.Module, feats: Tensor, batch: Batch, mean: Tensor) -> DemoCritique | None:
-    """``DemoCritique`` of the batch from critic features ``feats`` (B, L+1, F); None without demos."""
+def critique_demos(
+    critic: nn.Module, feats: Tensor, batch: Batch, values: ActionValues
+) -> DemoCritique | None:
+    """``DemoCritique`` of the batch from critic features ``feats`` (B, L+1, F) and the same critic's
+    ``values`` of them (``action_values``); None without demos."""
     if batch.demo is None:
         return None
     demo = batch.mask * batch.demo[:, None]
     with torch.no_grad():
-        f = feats[:, :-1].detach()
-        q_demo = torch.min(*critic.q(f, batch.actions))
-        q_pi = torch.min(*critic.q(f, torch.tanh(mean[:, :-1].detach())))
         a = batch.actions
         turned = torch.stack([a[..., 0], -a[..., 2], a[..., 1], a[..., 3], a[..., 4]], -1)
-        q_turned = torch.min(*critic.q(f, turned))
-        keep = (q_demo > q_pi).to(q_demo.dtype)
-        return DemoCritique(keep, masked_mean(keep, demo), masked_mean(q_demo - q_turned, demo),
-                            masked_mean(q_demo - q_pi, demo))  # fmt: skip
+        q_turned = torch.min(*critic.q(feats[:, :-1].detach(), turned))
+        keep = (values.advantage > 0).to(values.replayed.dtype)
+        return DemoCritique(keep, masked_mean(keep, demo), masked_mean(values.replayed - q_turned, demo),
+                            masked_mean(values.advantage, demo))  # fmt: skip
 
 
 def alpha_loss(log_alpha: Tensor, log_probs: Tensor, mask: Tensor, target_entropy: float) -> Tensor:
