@@ -77,6 +77,7 @@ def actor_config(
     return ActorConfig(
         task=run.task,
         index=index,
+        envs=run.envs_per_actor,
         policy="learned" if "learner" in run.services or run.connect else "random",
         seed_base=actor_seed_base(run.seed, run.resumes),
         demos=run.resolved_demos() if index == 0 and run.resume is None else 0,

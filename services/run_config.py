@@ -15,6 +15,7 @@ from typing import Literal
 import typeguard
 
 from proto.episode import DSA_TASKS
+from services.actor.config import MAX_ENVS
 from services.common.bus.zenoh_derive import check_run_file
 from services.learner import init_actor
 from services.learner.config import check_device, learner_presets, preset_name
@@ -104,6 +105,8 @@ class RunConfig:
     """Start the learner's actor from these weights (a fresh run only)."""
     actors: int | Literal["auto"] = 1
     """Actor processes; auto: one per core beyond 4, 1 to 12 (saved as the number)."""
+    envs_per_actor: int = 1
+    """Envs each actor steps in lockstep, one batched policy step per tick (as that many actors)."""
     random_steps: int | None = None
     """Env steps of random episodes after the demos; None: the preset's."""
     demos: int | None = None
@@ -187,10 +190,7 @@ class RunConfig:
         return self.mea_on or ("successes" if self.learner_preset in CPU_LEARNER_PRESETS else "demos")
 
     def __post_init__(self) -> None:
-        if self.actors == "auto":  # resolved here once: config.json and every service see the number
-            object.__setattr__(self, "actors", auto_actors(usable_cores()))
-        if not isinstance(self.actors, int) or self.actors < 0:
-            raise ValueError(f"--actors must be >= 0 or auto, not {self.actors!r}")
+        self._check_actors()
         if self.restart_limit < 0 or self.restart_window_seconds <= 0:
             raise ValueError("restart_limit must be >= 0 and restart_window_seconds > 0")
         if min(self.recording_segment_bytes, self.recording_segment_seconds, self.recording_max_bytes) < 0:
@@ -225,6 +225,14 @@ class RunConfig:
         # a file the router or the run's services cannot use: refused before anything starts
         check_run_file(self.zenoh_config, self.listen, self.connect, self.namespace, self.in_process)
 
+    def _check_actors(self) -> None:
+        if self.actors == "auto":  # resolved here once: config.json and every service see the number
+            object.__setattr__(self, "actors", auto_actors(usable_cores()))
+        if not isinstance(self.actors, int) or self.actors < 0:
+            raise ValueError(f"--actors must be >= 0 or auto, not {self.actors!r}")
+        if not isinstance(self.envs_per_actor, int) or not 1 <= self.envs_per_actor <= MAX_ENVS:
+            raise ValueError(f"--envs-per-actor must be in 1..{MAX_ENVS}, not {self.envs_per_actor!r}")
+
     def _check_learner_preset(self) -> None:
         """The preset must be one of the variant's algorithm's (``learner.config.learner_presets``)."""
         choices = learner_presets(VARIANTS[self.variant].algorithm)
@@ -256,7 +264,7 @@ _MACHINE_FIELDS = ("listen", "connect", "metrics_port", "metrics_addr", "duratio
 """Fields a resumed run takes from the command line rather than from the run's saved config."""
 
 
-RESUMABLE = ("env_steps", "eval_every", "actors", "final_eval_episodes")
+RESUMABLE = ("env_steps", "eval_every", "actors", "envs_per_actor", "final_eval_episodes")
 """Run settings a resume may change (each change is recorded in config.json's ``history``): the
 budget, the evaluation cadence, the actor count and the size of the evaluation at the budget. Any
 other run setting given with --resume is refused by name; this machine's (``_MACHINE_FIELDS``) are

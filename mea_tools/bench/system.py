@@ -30,6 +30,7 @@ import numpy as np
 from mea_tools.bench.harness import free_port, percentile
 from mea_tools.bench.report import emit
 from proto.topics import STATUS, WEIGHTS_ANNOUNCE
+from services.actor.config import MAX_ENVS
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 
 
@@ -40,6 +41,8 @@ class SystemBenchConfig:
     task: str = "block_pull"
     actors: int = 1
     """Actor processes (raw and full stack alike)."""
+    envs_per_actor: int = 1
+    """Envs each actor process steps (raw: in turn; full stack: `mea run --envs-per-actor`)."""
     seconds: float = 120.0
     """Measurement window of each part."""
     warmup_seconds: float = 60.0
@@ -48,26 +51,35 @@ class SystemBenchConfig:
     json: bool = False
     """Print exactly one JSON object instead of tables."""
 
+    def __post_init__(self) -> None:
+        if self.actors < 1 or not 1 <= self.envs_per_actor <= MAX_ENVS:
+            raise ValueError(f"--actors must be >= 1 and --envs-per-actor in 1..{MAX_ENVS}")
+        if self.seconds <= 0 or self.warmup_seconds < 0:
+            raise ValueError("--seconds must be > 0 and --warmup-seconds >= 0")
+
 
 def _log(msg: str) -> None:
     print(f"[bench system] {msg}", file=sys.stderr, flush=True)
 
 
-def raw_sim_main(task: str, index: int, seconds: float, results) -> None:
+def raw_sim_main(task: str, index: int, envs: int, seconds: float, results) -> None:
     try:
         from services.tasks import EnvSettings, make_env  # deferred: pybullet; only children simulate
 
-        env = make_env(task, EnvSettings())
+        sims = [make_env(task, EnvSettings()) for _ in range(envs)]
         rng = np.random.default_rng(index)
-        env.reset(index)
+        for j, env in enumerate(sims):
+            env.reset(index * 1000 + j)
         steps, t0 = 0, time.monotonic()
         while time.monotonic() - t0 < seconds:
-            _, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 5))
-            steps += 1
-            if terminated or truncated:
-                env.reset(index * 1000 + steps)
+            for env in sims:  # in turn, as an actor with several envs steps them
+                _, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 5))
+                steps += 1
+                if terminated or truncated:
+                    env.reset(index * 1_000_000 + steps)
         results.put(("done", steps, time.monotonic() - t0))
-        env.close()
+        for env in sims:
+            env.close()
     except BaseException as exc:  # noqa: BLE001 - reported to the parent
         results.put(("error", repr(exc)))
 
@@ -75,8 +87,8 @@ def raw_sim_main(task: str, index: int, seconds: float, results) -> None:
 def bench_raw(cfg: SystemBenchConfig) -> dict[str, Any]:
     ctx = mp.get_context("spawn")
     results = ctx.Queue()
-    procs = [ctx.Process(target=raw_sim_main, args=(cfg.task, i, cfg.seconds, results), daemon=True)
-             for i in range(cfg.actors)]  # fmt: skip
+    args = [(cfg.task, i, cfg.envs_per_actor, cfg.seconds, results) for i in range(cfg.actors)]
+    procs = [ctx.Process(target=raw_sim_main, args=a, daemon=True) for a in args]
     for p in procs:
         p.start()
     rates = []
@@ -87,7 +99,8 @@ def bench_raw(cfg: SystemBenchConfig) -> dict[str, Any]:
         rates.append(item[1] / item[2])
     for p in procs:
         p.join(10)
-    return {"actors": cfg.actors, "env steps/s (total)": sum(rates), "per process": sum(rates) / len(rates)}
+    return {"actors": cfg.actors, "envs per actor": cfg.envs_per_actor, "env steps/s (total)": sum(rates),
+            "per process": sum(rates) / len(rates)}  # fmt: skip
 
 
 def connect_to_run(port: int, proc: subprocess.Popen, timeout: float = 60.0):
@@ -152,7 +165,8 @@ class Collector:
 def bench_stack(cfg: SystemBenchConfig) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     port = free_port()
     cmd = [sys.executable, "-m", "services.cli", "run", "--task", cfg.task, "--actors", str(cfg.actors),
-           "--demos", "2", "--env-steps", "0", "--no-follow-gate", "--listen", f"tcp/127.0.0.1:{port}",
+           "--envs-per-actor", str(cfg.envs_per_actor), "--demos", "2", "--env-steps", "0", "--no-follow-gate",
+           "--listen", f"tcp/127.0.0.1:{port}",
            "--metrics-port", "0", "--run-dir", str(cfg.run_dir / f"stack-{int(time.time())}"),
            "--duration-seconds", str(cfg.warmup_seconds + cfg.seconds + 5), "--log-format", "json"]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
@@ -184,7 +198,7 @@ def bench_stack(cfg: SystemBenchConfig) -> tuple[dict[str, Any], list[dict[str, 
             wait_fraction = (c1.get("wait_seconds", 0.0) - c0.get("wait_seconds", 0.0)) / (t1 - t0)
     latencies = col.latencies()
     row = {
-        "actors": cfg.actors, "env steps/s": col.rate("actor", "env_steps"),
+        "actors": cfg.actors, "envs per actor": cfg.envs_per_actor, "env steps/s": col.rate("actor", "env_steps"),
         "augmented transitions/s": col.rate("augmenter", "transitions_out"),
         "learner updates/s": col.rate("learner", "updates"), "learner waiting (fraction of wall time)": wait_fraction,
     }  # fmt: skip

@@ -12,6 +12,8 @@ from services.tasks.camera import CameraSettings
 
 POLICIES = ("expert", "random", "learned")
 EXPERTS = ("observable", "privileged")
+MAX_ENVS = 64
+"""Envs one actor steps at most (each is a pybullet world in the actor's memory)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,6 +36,8 @@ class ActorConfig:
     """Episodes to run after the demonstrations (0: until stopped)."""
     index: int = 0
     """Actor index: picks the seed stream and the default /metrics port."""
+    envs: int = 1
+    """Envs stepped in lockstep with one batched policy step (env j acts as actor index*envs+j)."""
     seed_base: int = 0
     """First seed of the stream."""
     depth_image: bool = False
@@ -64,6 +68,8 @@ class ActorConfig:
             raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
         if self.incarnation < 0 or self.random_steps < 0:
             raise ValueError("incarnation and random_steps must be >= 0")
+        if not 1 <= self.envs <= MAX_ENVS:
+            raise ValueError(f"envs must be in 1..{MAX_ENVS}, not {self.envs}")
         if self.tensorboard_every < 1:
             raise ValueError("tensorboard_every must be >= 1")
         if self.unacked_limit < 1 or self.resend_seconds <= 0:
@@ -87,6 +93,23 @@ class ActorConfig:
 
 
 PRESETS = {"default": ActorConfig()}
+
+
+def env_configs(cfg: ActorConfig) -> list[ActorConfig]:
+    """One single-env config per env of ``cfg``: env j as actor ``index * envs + j`` alone, so an
+    actor with K envs runs, seed for seed, what K single-env actors run (the demos and the random
+    prefill stay with env 0, as with actor 0)."""
+    k = cfg.envs
+    return [
+        dataclasses.replace(
+            cfg,
+            index=cfg.index * k + j,
+            envs=1,
+            demos=cfg.demos if j == 0 else 0,
+            random_steps=cfg.random_steps if j == 0 else 0,
+        )  # fmt: skip
+        for j in range(k)
+    ]
 
 
 def expert_style(cfg_style: str, k: int, styles: tuple[str, ...] = EXPERT_STYLES) -> str:

@@ -9,7 +9,7 @@ import time
 from collections.abc import Sequence
 
 from proto.topics import EPISODE_ACKS, EPISODES_RAW
-from services.actor.config import PRESETS, ActorConfig
+from services.actor.config import PRESETS, ActorConfig, env_configs
 from services.actor.outbox import Outbox
 from services.actor.rollout import RolloutActor
 from services.common import config
@@ -18,6 +18,7 @@ from services.common.runtime import ServiceContext
 from services.common.scalars import ScalarLog
 from services.common.weights import WeightsClient
 from services.episodes.builder import EpisodeBuilder
+from services.episodes.rollout import EpisodeStepper, policy_input
 
 log = logging.getLogger(__name__)
 
@@ -188,84 +189,186 @@ def _load_weights(
     counts["weights_version"], counts["weights_loaded_at"] = blob.version, time.time()
 
 
+class EnvSlot:
+    """One of the actor's envs: its rollouts (``RolloutActor``, as actor ``cfg.index`` alone), its
+    policy state (a ``PolicyRuntime`` following the actor's weights, with its own noise) and the
+    learned episode it is in."""
+
+    def __init__(self, cfg: ActorConfig, instance: str) -> None:
+        self.actor = RolloutActor(cfg, instance)
+        self.policy = None
+        if cfg.policy == "learned":
+            from services.algorithms.policy import PolicyRuntime  # torch: only for learned actors
+
+            self.policy = PolicyRuntime(deterministic=False, seed=cfg.first_seed())
+        self.k = 0  # episodes after the demonstrations
+        self.episode: EpisodeStepper | None = None
+
+
+class ActorLoop:
+    """The actor's episodes over its envs. With ``cfg.envs`` K > 1 the K envs step in lockstep: their
+    learned episodes share one batched policy step per tick; an env whose episode ended starts its
+    next one (the gate, the weights, and random or expert episodes handled as a single-env actor
+    handles them before each episode), and a closed gate holds only the envs that would start one."""
+
+    def __init__(self, cfg: ActorConfig, ctx: ServiceContext, counts: dict) -> None:
+        self.cfg, self.ctx, self.counts = cfg, ctx, counts
+        self.slots = [EnvSlot(c, ctx.instance) for c in env_configs(cfg)]
+        self.mx = _metrics(ctx)
+        self.weights = WeightsClient(ctx.bus) if cfg.policy == "learned" else None
+        self.gate = GateFollower(ctx.bus, cfg.gate_timeout) if cfg.follow_gate else None
+        self.sender = EpisodeSender(ctx, cfg, self.mx)
+        self.policy = None  # loads each version once; every env's runtime follows it
+        if cfg.policy == "learned":
+            from services.algorithms.policy import PolicyRuntime  # torch: only for learned actors
+
+            self.policy = PolicyRuntime(deterministic=False, seed=cfg.first_seed())
+        self.finished, self.lag = 0, None
+        self.scalars: EpisodeScalars | None = None
+
+    def on_step(self, seconds: float) -> None:
+        self.counts["env_steps"] += 1
+        self.mx["steps"].inc()
+        self.mx["step_seconds"].observe(seconds)
+
+    def publish(self, slot: EnvSlot, b: EpisodeBuilder) -> None:
+        self.sender.wait_for_room()
+        t0 = time.perf_counter()
+        self.sender.publish(b.finish(slot.actor.episode_id(b)))
+        self.mx["publish_seconds"].observe(time.perf_counter() - t0)
+        kind = b.meta["policy_kind"]
+        self.counts["episodes"] += 1
+        self.mx["episodes"].labels(kind).inc()
+        if b.success:
+            self.counts["successes"] += 1
+            self.mx["successes"].labels(kind).inc()
+
+    def dropped(self, exc: ValueError) -> None:
+        """A policy's action the env refused (non-finite): the episode is dropped, counted."""
+        self.mx["bad_actions"].inc()
+        log.error("episode dropped: the policy's action was refused",
+                  extra={"version": self.ctx.policy_version, "error": str(exc)[:300]})  # fmt: skip
+
+    def demos(self) -> None:
+        """The demonstrations, whole expert episodes on env 0 (as on actor 0); failures counted."""
+        cfg, first = self.cfg, self.slots[0]
+        demos, attempts = 0, 0
+        while (
+            demos < cfg.demos
+            and attempts < cfg.demos * cfg.max_demo_attempts
+            and not self.ctx.shutdown.is_set()
+        ):
+            b = first.actor.expert_episode(demos, self.on_step)
+            attempts += 1
+            if b.success:
+                self.publish(first, b)
+                demos += 1
+            else:
+                self.mx["failed_demos"].inc()
+        if demos < cfg.demos:
+            log.warning("fewer demonstrations than requested", extra={"demos": demos, "requested": cfg.demos})
+
+    def done(self, slot: EnvSlot, b: EpisodeBuilder) -> None:
+        self.publish(slot, b)
+        self.scalars.episode(b, self.counts["env_steps"], self.lag)
+        slot.k += 1
+        self.finished += 1
+
+    def starting(self) -> list[EnvSlot]:
+        """The envs that start an episode now: idle ones within the episode limit, once the gate is
+        open (waiting for it only when no env is in an episode)."""
+        active = sum(s.episode is not None for s in self.slots)
+        idle = [s for s in self.slots if s.episode is None]
+        if self.cfg.episodes:
+            idle = idle[: max(0, self.cfg.episodes - self.finished - active)]
+        if not idle:
+            return []
+        self.sender.tend()
+        if self.gate is not None and not active:
+            self.mx["gate_wait"].inc(self.gate.wait(self.ctx.shutdown, self.sender.tend))
+        elif self.gate is not None and self.gate.blocked():
+            return []  # the envs in an episode step on
+        return [] if self.ctx.shutdown.is_set() else idle
+
+    def follow_weights(self) -> bool:
+        """Load a newer version if one was announced, for every env; False while none has come."""
+        acted = self.policy.version
+        _load_weights(self.weights, self.policy, self.mx, self.counts, self.cfg.depth_image, self.cfg.task)
+        if not self.policy.ready:
+            return False
+        self.ctx.policy_version = self.policy.version
+        self.lag = None if acted < 0 else self.policy.version - acted
+        for s in self.slots:
+            s.policy.follow(self.policy)
+        return True
+
+    def start(self, slot: EnvSlot) -> None:
+        """A learned episode begins (stepped by ``step``); a random or expert one runs whole, here."""
+        if slot.actor.next_is_learned():
+            slot.episode = slot.actor.begin_learned(slot.policy, self.on_step)
+            return
+        try:
+            b = slot.actor.policy_episode(slot.k, slot.policy, self.on_step)
+        except ValueError as exc:
+            self.dropped(exc)
+            self.ctx.shutdown.wait(0.5)
+            return
+        self.done(slot, b)
+
+    def step(self) -> None:
+        """One batched policy step for every env in a learned episode, then one env step each."""
+        active = [s for s in self.slots if s.episode is not None]
+        if not active:
+            return
+        from services.algorithms.policy import PolicyRuntime  # torch: only learned episodes step here
+
+        observation = self.policy.spec.observation
+        inputs = [policy_input(s.episode.obs, observation) for s in active]
+        actions = PolicyRuntime.act_batch([s.policy for s in active], inputs)
+        for s, action in zip(active, actions, strict=True):
+            try:
+                ended = s.episode.step(action)
+            except ValueError as exc:
+                s.episode = None
+                self.dropped(exc)
+                continue
+            if ended:
+                b, s.episode = s.episode.builder, None
+                self.done(s, b)
+
+    def run(self) -> None:
+        self.demos()
+        self.scalars = EpisodeScalars(self.cfg, self.ctx.instance, self.gate, self.counts["env_steps"])
+        shutdown = self.ctx.shutdown
+        while (self.cfg.episodes == 0 or self.finished < self.cfg.episodes) and not shutdown.is_set():
+            starting = self.starting()
+            if starting and self.policy is not None and not self.follow_weights():
+                shutdown.wait(0.2)  # no weights yet: wait for the learner's first version
+                continue
+            for s in starting:
+                if not shutdown.is_set():
+                    self.start(s)
+            if not shutdown.is_set():
+                self.step()
+
+    def close(self) -> None:
+        if self.scalars is not None:
+            self.scalars.close()
+        self.sender.flush(self.cfg.resend_seconds)  # a stop by SIGTERM returns at once
+        if self.gate is not None:
+            self.gate.close()
+        self.sender.close()
+        for s in self.slots:
+            s.actor.env.close()
+
+
 def run(cfg: ActorConfig, bus_factory=None) -> int:
     counts = {"env_steps": 0, "episodes": 0, "successes": 0}
     kwargs = {"bus_factory": bus_factory} if bus_factory else {}
     with ServiceContext("actor", cfg.service, counters=lambda: counts, index=cfg.index, **kwargs) as ctx:
-        actor = RolloutActor(cfg, ctx.instance)
-        mx = _metrics(ctx)
-        weights = WeightsClient(ctx.bus) if cfg.policy == "learned" else None
-        gate = GateFollower(ctx.bus, cfg.gate_timeout) if cfg.follow_gate else None
-        sender = EpisodeSender(ctx, cfg, mx)
-        policy = None
-        if cfg.policy == "learned":
-            from services.algorithms.policy import PolicyRuntime  # torch: only for learned actors
-
-            policy = PolicyRuntime(deterministic=False, seed=cfg.first_seed())
-
-        def on_step(seconds: float) -> None:
-            counts["env_steps"] += 1
-            mx["steps"].inc()
-            mx["step_seconds"].observe(seconds)
-
-        def publish(b: EpisodeBuilder) -> None:
-            sender.wait_for_room()
-            t0 = time.perf_counter()
-            sender.publish(b.finish(actor.episode_id(b)))
-            mx["publish_seconds"].observe(time.perf_counter() - t0)
-            kind = b.meta["policy_kind"]
-            counts["episodes"] += 1
-            mx["episodes"].labels(kind).inc()
-            if b.success:
-                counts["successes"] += 1
-                mx["successes"].labels(kind).inc()
-
-        demos, attempts = 0, 0
-        while (
-            demos < cfg.demos and attempts < cfg.demos * cfg.max_demo_attempts and not ctx.shutdown.is_set()
-        ):
-            b = actor.expert_episode(demos, on_step)
-            attempts += 1
-            if b.success:
-                publish(b)
-                demos += 1
-            else:
-                mx["failed_demos"].inc()
-        if demos < cfg.demos:
-            log.warning("fewer demonstrations than requested", extra={"demos": demos, "requested": cfg.demos})
-        k, lag = 0, None
-        scalars = EpisodeScalars(cfg, ctx.instance, gate, counts["env_steps"])
-        while (cfg.episodes == 0 or k < cfg.episodes) and not ctx.shutdown.is_set():
-            sender.tend()
-            if gate is not None:
-                mx["gate_wait"].inc(gate.wait(ctx.shutdown, sender.tend))
-            if weights is not None:
-                acted = policy.version
-                _load_weights(weights, policy, mx, counts, cfg.depth_image, cfg.task)
-                if not policy.ready:  # no weights yet: wait for the learner's first version
-                    ctx.shutdown.wait(0.2)
-                    continue
-                ctx.policy_version = policy.version
-                lag = None if acted < 0 else policy.version - acted
-            if ctx.shutdown.is_set():
-                break
-            try:
-                episode = actor.policy_episode(k, policy, on_step)
-            except ValueError as exc:  # a policy's action the env refused (non-finite): drop the episode
-                mx["bad_actions"].inc()
-                log.error("episode dropped: the policy's action was refused",
-                          extra={"version": ctx.policy_version, "error": str(exc)[:300]})  # fmt: skip
-                ctx.shutdown.wait(0.5)
-                continue
-            publish(episode)
-            scalars.episode(episode, counts["env_steps"], lag)
-            k += 1
-        scalars.close()
-        sender.flush(cfg.resend_seconds)  # a stop by SIGTERM returns at once
-        if gate is not None:
-            gate.close()
-        sender.close()
-        actor.env.close()
+        loop = ActorLoop(cfg, ctx, counts)
+        loop.run()
+        loop.close()
     return 0
 
 

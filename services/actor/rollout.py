@@ -4,11 +4,13 @@ reuse. One episode itself is ``services.episodes.rollout.run_episode``."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from services.actor.config import ActorConfig, expert_style
 from services.episodes.builder import EpisodeBuilder
-from services.episodes.rollout import policy_input, run_episode
+from services.episodes.rollout import EpisodeStepper, policy_input, run_episode
 from services.tasks import EXPERT_STYLES, ManipulationEnv, make_env
 from services.tasks.experts import seed_for_style
 
@@ -67,14 +69,25 @@ class RolloutActor:
         act = (lambda _o: sample(self.rng)) if sample is not None else (lambda _o: self.rng.uniform(-1, 1, 5))
         return run_episode(self.env, seed, act, self.builder(seed, "random", -1, False), on_step)
 
-    def learned_episode(self, policy, on_step=None) -> EpisodeBuilder:
-        """One episode with a ``PolicyRuntime`` (stochastic; its recurrent state starts afresh)."""
+    def begin_learned(self, policy, on_step=None) -> EpisodeStepper:
+        """A learned episode to step from outside (an actor with several envs batches their policy
+        steps): the next seed, the policy's recurrent state started afresh, the env reset."""
         seed = self.next_seed()
         policy.reset()
-        observation = policy.spec.observation
-        return run_episode(self.env, seed, lambda o: policy.act(policy_input(o, observation)),
-                           self.builder(seed, "learned", policy.version, False), on_step,
-                           getattr(policy, "executed", None))  # fmt: skip
+        builder = self.builder(seed, "learned", policy.version, False)
+        return EpisodeStepper(self.env, seed, builder, on_step, getattr(policy, "executed", None))
+
+    def learned_episode(self, policy, on_step=None) -> EpisodeBuilder:
+        """One episode with a ``PolicyRuntime`` (stochastic; its recurrent state starts afresh)."""
+        episode, observation = self.begin_learned(policy, on_step), policy.spec.observation
+        while not episode.done:
+            t0 = time.perf_counter()
+            episode.step(policy.act(policy_input(episode.obs, observation)), t0)
+        return episode.builder
+
+    def next_is_learned(self) -> bool:
+        """Whether ``policy_episode`` runs the learned policy next (the random prefill is done)."""
+        return self.cfg.policy == "learned" and self.prefilled >= self.cfg.random_steps
 
     def policy_episode(self, k: int, policy=None, on_step=None) -> EpisodeBuilder:
         """Episode k after the demonstrations: a random one while the random prefill

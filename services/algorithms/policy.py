@@ -10,6 +10,8 @@ Policy input: uint8 image codes (C, H, W) as stored in replay, scaled by the pol
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 
@@ -99,6 +101,30 @@ class PolicyRuntime:
         if self.runtime is None:
             raise RuntimeError("no weights loaded")
         return self.runtime.act(image_codes)
+
+    def follow(self, source: PolicyRuntime) -> None:
+        """Act with ``source``'s weights (the same modules, shared read-only), keeping this runtime's
+        generator, and its recurrent state while the weights' spec stays the same (a new spec starts
+        it afresh). For the envs of one actor: ``source`` loads each version once for all of them."""
+        if source.runtime is None:
+            raise RuntimeError("no weights loaded")
+        if self.runtime is None or type(self.runtime) is not type(source.runtime) or self.spec != source.spec:
+            self.runtime = source.runtime.fresh(self.generator)
+        self.version = source.version
+
+    @staticmethod
+    def act_batch(policies: Sequence[PolicyRuntime], image_codes: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """``act`` for several runtimes that follow the same weights, in one batched forward pass where
+        their algorithm's runtime has one (``act_many``: each keeps its own recurrent state and draws
+        its noise from its own generator, so each acts as it would alone, to float rounding); one at
+        a time otherwise."""
+        runtimes = [p.runtime for p in policies]
+        if any(r is None for r in runtimes):
+            raise RuntimeError("no weights loaded")
+        many = getattr(type(runtimes[0]), "act_many", None)
+        if len(runtimes) > 1 and many is not None and all(type(r) is type(runtimes[0]) for r in runtimes):
+            return many(runtimes, image_codes)
+        return [p.act(c) for p, c in zip(policies, image_codes, strict=True)]
 
 
 __all__ = [

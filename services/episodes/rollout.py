@@ -45,32 +45,51 @@ def policy_input(obs: Observation, observation: str) -> np.ndarray:
     return depth_policy_images(depth, np.array([obs.jaw], np.float32))[0]
 
 
+class EpisodeStepper:
+    """One episode advanced a step at a time: ``run_episode`` loops over it, and an actor with several
+    envs steps one per env in lockstep (one batched policy step per tick).
+
+    The env is reset to ``seed`` on construction; ``obs`` is the observation to act on next.
+    ``step(action)`` records the action the env reports as executed (``info['executed_action']``)
+    where it reports one, tells ``executed`` that action, and returns True once the episode ended.
+    ``on_step(seconds)`` sees each step's time: from ``t0`` where the caller gives it (the policy's
+    time included), else the env step alone."""
+
+    def __init__(self, env: ManipulationEnv, seed: int, builder: EpisodeBuilder, on_step=None, executed=None):
+        self.env, self.builder, self.on_step, self.executed = env, builder, on_step, executed
+        self.obs = env.reset(seed)
+        builder.meta["fixed_object"] = env.task.fixed_index()  # privileged, for the learner's critic
+        conditions = getattr(env, "episode_conditions", None)  # what the env drew besides the seed
+        if conditions is not None:
+            builder.meta["conditions"] = conditions()
+        builder.observe(self.obs)
+        self.done = False
+
+    def step(self, action: np.ndarray, t0: float | None = None) -> bool:
+        if self.done:
+            raise RuntimeError("the episode has ended")
+        t0 = time.perf_counter() if t0 is None else t0
+        self.obs, reward, terminated, truncated, info = self.env.step(action)
+        if self.on_step is not None:
+            self.on_step(time.perf_counter() - t0)
+        self.builder.observe(self.obs)
+        done = info.get("executed_action", action)
+        if self.executed is not None:
+            self.executed(done)
+        self.builder.step(done, reward, terminated, truncated)
+        self.done = bool(terminated or truncated) or self.builder.num_steps >= self.env.settings.max_steps
+        return self.done
+
+
 def run_episode(
     env: ManipulationEnv, seed: int, act, builder: EpisodeBuilder, on_step=None, executed=None
 ) -> EpisodeBuilder:
-    """Roll out one episode with ``act(obs) -> action``; ``on_step(seconds)`` sees each step's time.
-
-    The episode records the action the env reports as executed (``info['executed_action']``) where it
-    reports one: in ``surgical_grasp_any`` the hybrid controller's approach replaces the policy's.
-    ``executed(action)``, if given, is told that action after every step (a policy whose state
-    follows what was executed: ``PolicyRuntime.executed``)."""
-    obs = env.reset(seed)
-    builder.meta["fixed_object"] = env.task.fixed_index()  # privileged, for the learner's critic
-    conditions = getattr(env, "episode_conditions", None)  # what the env drew besides the seed
-    if conditions is not None:
-        builder.meta["conditions"] = conditions()
-    builder.observe(obs)
-    for _ in range(env.settings.max_steps):
+    """Roll out one episode with ``act(obs) -> action`` (``EpisodeStepper``); ``on_step(seconds)`` sees
+    each step's time, the policy's included. In ``surgical_grasp_any`` the hybrid controller's approach
+    replaces the policy's action in the record; ``executed(action)``, if given, is told that action
+    after every step (a policy whose state follows what was executed: ``PolicyRuntime.executed``)."""
+    episode = EpisodeStepper(env, seed, builder, on_step, executed)
+    while not episode.done:
         t0 = time.perf_counter()
-        action = act(obs)
-        obs, reward, terminated, truncated, info = env.step(action)
-        if on_step is not None:
-            on_step(time.perf_counter() - t0)
-        builder.observe(obs)
-        done = info.get("executed_action", action)
-        if executed is not None:
-            executed(done)
-        builder.step(done, reward, terminated, truncated)
-        if terminated or truncated:
-            break
+        episode.step(act(episode.obs), t0)
     return builder

@@ -6,6 +6,7 @@ across an episode and cleared by ``reset``."""
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,6 +73,36 @@ class ActorRuntime:
 
     def executed(self, action: np.ndarray) -> None:
         self._prev = torch.from_numpy(np.asarray(action, np.float32).reshape(1, ACTION_DIM).copy())
+
+    @staticmethod
+    @torch.no_grad()
+    def act_many(runtimes: Sequence[ActorRuntime], image_codes: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """``act`` of several runtimes of the same actor module as one batch: their states and previous
+        actions stacked (a fresh episode's state as the zeros the LSTM starts from), each sample's
+        noise drawn from its own runtime's generator in the order ``act`` draws it."""
+        actor = runtimes[0].actor
+        if actor is None or any(r.actor is not actor for r in runtimes):
+            raise ValueError("act_many needs runtimes of one loaded actor")
+        x = images_from_codes(torch.from_numpy(np.stack([np.ascontiguousarray(c) for c in image_codes])))
+        prev = torch.cat([r._prev for r in runtimes])
+        states = [r._state for r in runtimes]
+        state = None
+        if any(st is not None for st in states):
+            h0, c0 = next(st for st in states if st is not None)
+            h = torch.cat([torch.zeros_like(h0) if st is None else st[0] for st in states])
+            c = torch.cat([torch.zeros_like(c0) if st is None else st[1] for st in states])
+            state = (h, c)
+        mean, log_std, (h1, c1) = actor.step(x, prev, state)
+        actions = []
+        for k, r in enumerate(runtimes):
+            r._state = (h1[k : k + 1], c1[k : k + 1])
+            if r.deterministic:
+                a = deterministic_action(mean[k : k + 1])
+            else:
+                a, _ = tanh_gaussian_sample(mean[k : k + 1], log_std[k : k + 1], generator=r.generator)
+            r._prev = a
+            actions.append(a[0].numpy().astype(np.float32))
+        return actions
 
     @torch.no_grad()
     def act(self, image_codes: np.ndarray) -> np.ndarray:
