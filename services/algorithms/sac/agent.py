@@ -108,9 +108,12 @@ class RecurrentSAC:
         shared = {id(p) for p in critic.parameters()}
         self._actor_params = [p for p in actor.parameters() if p.requires_grad and id(p) not in shared]
         self._critic_params = [p for p in critic.parameters() if p.requires_grad]
-        self.actor_opt = torch.optim.Adam(self._actor_params, lr=settings.lr)
-        self.critic_opt = torch.optim.Adam(self._critic_params, lr=settings.lr)
-        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=settings.alpha_lr)
+        # on CUDA torch's fused Adam (one kernel per step instead of several per parameter); the
+        # same update rule, and the CPU keeps its default implementation
+        fused = {"fused": True} if self.device.type == "cuda" else {}
+        self.actor_opt = torch.optim.Adam(self._actor_params, lr=settings.lr, **fused)
+        self.critic_opt = torch.optim.Adam(self._critic_params, lr=settings.lr, **fused)
+        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=settings.alpha_lr, **fused)
         self.updates = 0
 
     @property
