@@ -59,9 +59,9 @@ note "mea run ${args[*]} --learner-args=\"$LEARNER_ARGS\" --actors $ACTORS --lea
 sample_resources "$OUT/resources.csv"
 
 pids=()
-port=17600
+free_port() { "$PY" -c "import socket; s = socket.socket(); s.bind(('127.0.0.1', 0)); print(s.getsockname()[1])"; }
 for seed in $SEEDS; do
-  port=$((port + 1))
+  port=$(free_port)
   run_dir=/tmp/gpu-learning/run-$seed
   rm -rf "$run_dir"
   mkdir -p "$(dirname "$run_dir")"
