@@ -17,6 +17,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -210,6 +211,44 @@ def bench_stack(cfg: SystemBenchConfig) -> tuple[dict[str, Any], list[dict[str, 
     return row, lat
 
 
+POLICY_PRESETS = ("cpu-small", "paper")
+"""Actor networks timed by ``bench_policy_step``."""
+
+
+def bench_policy_step(cfg: SystemBenchConfig, repeats: int = 30) -> list[dict[str, Any]]:
+    """An actor's policy step alone (one torch thread, as in a spawned actor): one env per forward
+    pass against the batch of ``envs_per_actor`` envs an actor with that many steps at once."""
+    import torch  # deferred: the raw simulator's children need none
+
+    from services.algorithms.networks import PRESETS, build_actor
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    rows = []
+    try:
+        for preset in POLICY_PRESETS:
+            torch.manual_seed(0)
+            actor = build_actor(PRESETS[preset]).eval()
+            ms = {}
+            for k in sorted({1, cfg.envs_per_actor}):
+                x, prev = torch.rand(k, 2, 84, 84), torch.zeros(k, 5)
+                with torch.no_grad():
+                    actor.step(x, prev)  # warm-up
+                    times = []
+                    for _ in range(repeats):
+                        t0 = time.perf_counter()
+                        actor.step(x, prev)
+                        times.append(time.perf_counter() - t0)
+                ms[k] = 1e3 * statistics.median(times)
+            k = cfg.envs_per_actor
+            rows.append({"actor network": preset, "ms per step, 1 env": ms[1], "envs per actor": k,
+                         f"ms per batch of {k}": ms[k], "ms per env": ms[k] / k,
+                         "per-env cost ratio": ms[1] / (ms[k] / k)})  # fmt: skip
+    finally:
+        torch.set_num_threads(threads)
+    return rows
+
+
 def run(cfg: SystemBenchConfig) -> dict:
     started = time.monotonic()
     _log(f"raw simulator: {cfg.actors} process(es), {cfg.seconds:.0f} s ...")
@@ -217,7 +256,8 @@ def run(cfg: SystemBenchConfig) -> dict:
     stack, latency = bench_stack(cfg)
     if stack["env steps/s"]:
         stack["overhead vs raw %"] = 100.0 * (1.0 - stack["env steps/s"] / raw["env steps/s (total)"])
-    sections = {"raw simulator": [raw], "full stack (mea run)": [stack], "weights publish -> loaded": latency}
+    sections = {"raw simulator": [raw], "full stack (mea run)": [stack], "weights publish -> loaded": latency,
+                "policy step per env (batched over an actor's envs)": bench_policy_step(cfg)}  # fmt: skip
     meta = {"task": cfg.task, "seconds": cfg.seconds, "warmup_seconds": cfg.warmup_seconds,
             "total_minutes": round((time.monotonic() - started) / 60, 1),
             "stack": "mea variant, cpu-small learner (1 thread), evaluator, actors ignoring the replay gate"}  # fmt: skip
