@@ -320,11 +320,9 @@ class ActorLoop:
         active = [s for s in self.slots if s.episode is not None]
         if not active:
             return
-        from services.algorithms.policy import PolicyRuntime  # torch: only learned episodes step here
-
         observation = self.policy.spec.observation
         inputs = [policy_input(s.episode.obs, observation) for s in active]
-        actions = PolicyRuntime.act_batch([s.policy for s in active], inputs)
+        actions = self.policy.act_batch([s.policy for s in active], inputs)
         for s, action in zip(active, actions, strict=True):
             try:
                 ended = s.episode.step(action)

@@ -108,11 +108,4 @@ class ActorRuntime:
     def act(self, image_codes: np.ndarray) -> np.ndarray:
         if self.actor is None:
             raise RuntimeError("no weights loaded")
-        x = images_from_codes(torch.from_numpy(np.ascontiguousarray(image_codes))[None])
-        mean, log_std, self._state = self.actor.step(x, self._prev, self._state)
-        if self.deterministic:
-            a = deterministic_action(mean)
-        else:
-            a, _ = tanh_gaussian_sample(mean, log_std, generator=self.generator)
-        self._prev = a
-        return a[0].numpy().astype(np.float32)
+        return self.act_many([self], [image_codes])[0]  # a batch of one: the same operations
