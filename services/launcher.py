@@ -41,6 +41,7 @@ from services.common.bus.zenoh_bus import ZenohBus
 from services.common.mcap_io import SegmentedRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
+from services.evaluator import plot
 from services.plan import ChildSpec, check_init_actor, child_specs, describe, restarted
 from services.run_config import PRESETS, RunConfig, read_resume, recording_metadata, usable_cores
 from services.run_zenoh import router_config, secure
@@ -277,9 +278,9 @@ def render_curves(run_dir: Path) -> None:
     if not (run_dir / "eval" / "history.jsonl").exists():
         return
     try:
-        from services.evaluator.plot import group_runs, load_run, render
-
-        render(group_runs([load_run(run_dir, "variant")]), run_dir / "curves.png", title=run_dir.name)
+        plot.render(
+            plot.group_runs([plot.load_run(run_dir, "variant")]), run_dir / "curves.png", title=run_dir.name
+        )
     except Exception as exc:  # noqa: BLE001 - a missing plot must not fail a finished run
         log.warning("learning curves not rendered", extra={"error": str(exc)[:300]})
 

@@ -33,8 +33,14 @@ from proto.msgpack_wire import ProtocolError
 from proto.seeds import EVAL_SEED_BASE
 from services.common import config, run_key, weights_file
 from services.common.mcap_io import read_recording
-from services.evaluator.video import FPS, check_out, compose, outcome_of, policy_view
+from services.evaluator.evaluation import EpisodeRunner
+from services.evaluator.history import HISTORY, read_history
+from services.evaluator.video import FPS, Film, check_out, compose, outcome_of, policy_view
 from services.evaluator.video import write as write_video
+from services.observation.depth_image import policy_images
+from services.observation.projection import segment_policy_images
+from services.tasks import TASK_CLASSES, EnvSettings, make_env
+from services.tasks.camera import scene_image
 
 PROG = "mea play"
 
@@ -102,8 +108,6 @@ def _run_task(run_dir: Path | None) -> str:
 
 def _env_steps(run_dir: Path | None, version: int) -> int:
     """The env steps the run's evaluator recorded for ``version`` (-1: none)."""
-    from services.evaluator.history import HISTORY, read_history
-
     if run_dir is None or not (run_dir / HISTORY).is_file():
         return -1
     steps = [r.get("env_steps", -1) for r in read_history(run_dir / HISTORY) if r.get("version") == version]
@@ -112,10 +116,6 @@ def _env_steps(run_dir: Path | None, version: int) -> int:
 
 def play_policy(a: PlayArgs) -> str:
     """Film the run's policy; returns the line to print. ValueError on bad input, before writing."""
-    from services.evaluator.evaluation import EpisodeRunner
-    from services.evaluator.video import Film
-    from services.tasks import TASK_CLASSES, EnvSettings, make_env
-
     assert a.run is not None
     if not a.run.exists():
         raise ValueError(f"{a.run}: no such run directory or weights file")
@@ -129,6 +129,7 @@ def play_policy(a: PlayArgs) -> str:
     if task not in TASK_CLASSES:
         raise ValueError(f"--task must be one of {', '.join(TASK_CLASSES)} (a weights file outside a run "
                          f"directory names none), not {task!r}")  # fmt: skip
+    # deferred: torch (seconds to import), needed only to film a policy, not for recordings or bad input
     from services.algorithms.policy import PolicyRuntime, blob_observation, check_observation
 
     try:
@@ -157,22 +158,15 @@ def _stored_images(ep: Episode) -> np.ndarray:
     """The policy's images of an episode's T+1 observations: its stored images (depth, DSA), else
     the voxel projection of its points, as the augmenter attaches them."""
     if ep.images is None:
-        from services.observation.projection import segment_policy_images
-
         return segment_policy_images(ep.points, ep.point_counts, ep.jaw)
     if ep.images.dtype == np.uint8:
         return ep.images
-    from services.observation.depth_image import policy_images
-
     return policy_images(ep.images[:, 0], ep.jaw)
 
 
 def _replay(ep: Episode, size: int) -> tuple[list[np.ndarray], float]:
     """The scene at each of the episode's observations, replaying its actions from its seed, and the
     largest distance (m, or sim units) between the replayed and the recorded gripper."""
-    from services.tasks import make_env
-    from services.tasks.camera import scene_image
-
     env = make_env(ep.task)
     try:
         obs = env.reset(ep.seed)
@@ -215,8 +209,6 @@ def _sessions(messages: Iterator) -> dict[tuple[str, int], list]:
 
 
 def _session_frames(key: tuple[str, int], steps: list, size: int) -> list[np.ndarray]:
-    from services.observation.projection import segment_policy_images
-
     frames = []
     for req, reply in steps:
         if req.image is not None:

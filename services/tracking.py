@@ -78,8 +78,8 @@ def _follow(tb: Path, instances: Sequence[str]) -> None:
     no key gets a directory's name as a prefix): an empty writer opened there with the patch on.
     wandb reads a directory's files in name order and leaves a file once a later one exists, so the
     services' files (named by the second they open) must come after these: wait into the next second."""
-    import wandb
-    from torch.utils.tensorboard import SummaryWriter
+    import wandb  # deferred: wandb is an optional extra (mea-rl[track]), needed only with --track
+    from torch.utils.tensorboard import SummaryWriter  # deferred: a slow import, needed only with --track
 
     for d in (tb, *(tb / i for i in instances)):
         d.mkdir(parents=True, exist_ok=True)
@@ -94,7 +94,7 @@ def _follow(tb: Path, instances: Sequence[str]) -> None:
 def _start_wandb(cfg: RunConfig, run_dir: Path) -> Any:
     """A W&B run (the id in RUN_DIR/wandb-run-id, kept from the first sitting); None, logged, if W&B
     cannot start (no login for online mode): training goes on with TensorBoard."""
-    import wandb
+    import wandb  # deferred: wandb is an optional extra (mea-rl[track]), needed only with --track
 
     id_file = run_dir / RUN_ID_FILE
     run_id = id_file.read_text().strip() if id_file.is_file() else None  # None: W&B makes one

@@ -174,10 +174,8 @@ def _load_weights(
     if blob is None:
         return
     try:
-        from services.algorithms.policy import (
-            blob_observation,
-            check_observation,
-        )  # torch: learned actors only
+        # deferred: torch, for learned actors only (an expert or random actor starts without it)
+        from services.algorithms.policy import blob_observation, check_observation
 
         check_observation(blob_observation(blob), depth_image, "an actor", task)
         policy.load(blob)  # only after the check: refused weights must not replace the ones acting

@@ -13,21 +13,6 @@ from torch import Tensor, nn
 from proto.actions import ACTION_DIM
 from services.algorithms.groups import Group, action_matrix, inverse, transform_images
 
-__all__ = [
-    "ActionHead",
-    "ActionLift",
-    "EquivariantLSTM",
-    "GroupConv2d",
-    "GroupLayerNorm",
-    "GroupLinear",
-    "GroupPool",
-    "InvariantHead",
-    "LiftConv2d",
-    "LSTMState",
-    "field_bias",
-    "group_pool",
-]
-
 LSTMState = tuple[Tensor, Tensor]
 """(h, c), each (B, hidden channels)."""
 

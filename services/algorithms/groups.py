@@ -12,22 +12,6 @@ from torch import Tensor
 
 from proto.actions import ACTION_DIM
 
-__all__ = [
-    "C4",
-    "D4",
-    "Element",
-    "Group",
-    "action_matrix",
-    "compose",
-    "get_group",
-    "inverse",
-    "matrix",
-    "sign",
-    "transform_actions",
-    "transform_images",
-    "transform_regular",
-]
-
 Element = tuple[int, int]
 """(m, r): mirror bit and number of quarter turns."""
 

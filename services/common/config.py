@@ -105,7 +105,7 @@ def _flag(arg: Any) -> str:
 def _one_line(event: Any) -> None:
     """tyro's parse-error hook (tyro pinned: the hook is private API): raise the event as one line;
     events not known here fall through to tyro's own box (still exit code 2)."""
-    from tyro import _errors as e
+    from tyro import _errors as e  # deferred: private tyro API, reached only once _parse_error_hook found it
 
     if isinstance(event, e.InstantiationFailure):  # a bad value, or the config's own checks
         message = event.message.strip().splitlines()[0] if event.message.strip() else "invalid value"
@@ -202,7 +202,7 @@ def _option_line(action: argparse.Action) -> str:
 
 def _parse_error_hook(hook):
     try:
-        from tyro._errors import on_parse_error
+        from tyro._errors import on_parse_error  # deferred: private tyro API that another tyro may lack
     except ImportError:  # another tyro: its own error boxes
         return contextlib.nullcontext()
     return on_parse_error(hook)

@@ -98,7 +98,7 @@ class ScalarLog:
         tag) pairs whose values TensorBoard reads from the scalars of the run in that subdirectory
         (``evaluator-0``, ``eval/success_rate``). Written into this writer's own file: torch's
         ``add_hparams`` would open a run of its own and knows no metric in another run."""
-        from tensorboard.plugins.hparams import summary_v2 as hp
+        from tensorboard.plugins.hparams import summary_v2 as hp  # deferred: tensorboard, a slow import
 
         plain = {k: v if isinstance(v, (bool, int, float, str)) else str(v) for k, v in values.items()}
         config = hp.hparams_config_pb(
@@ -111,8 +111,8 @@ class ScalarLog:
     def add_animation(self, tag_: str, frames: Sequence[Any], step: int, fps: float) -> None:
         """``frames`` (H, W, 3) uint8 as an animated GIF in TensorBoard's image plugin: what
         ``SummaryWriter.add_video`` writes, encoded with imageio (pillow) instead of moviepy."""
-        import imageio.v3 as iio
-        from tensorboard.compat.proto.summary_pb2 import Summary
+        import imageio.v3 as iio  # deferred: only the evaluator's animations need it
+        from tensorboard.compat.proto.summary_pb2 import Summary  # deferred: tensorboard, a slow import
 
         gif = iio.imwrite("<bytes>", list(frames), extension=".gif", duration=1000.0 / fps, loop=0)
         height, width = frames[0].shape[:2]

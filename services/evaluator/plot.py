@@ -159,10 +159,10 @@ def format_table(rows: Sequence[dict]) -> str:
 def render(groups: Sequence[Group], out: Path, title: str = "") -> None:
     """Success rate vs env steps, mean ± std (shaded) per label, to a PNG."""
     try:
-        import matplotlib
+        import matplotlib  # deferred: slow to import, and only drawing needs it (not the launcher)
 
         matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # deferred: after the Agg backend is chosen
     except ImportError as exc:
         raise PlotError(f"plotting needs matplotlib (pip install matplotlib): {exc}") from None
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)

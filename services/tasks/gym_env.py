@@ -24,8 +24,15 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from proto.discrete_actions import NAMES
 from services.tasks import EnvSettings, make_env
 from services.tasks.camera import CameraSettings, scene_image
+from services.tasks.surgical.settings import (
+    FSM_STATES,
+    RandomisationSettings,
+    SurgicalCameraSettings,
+    SurgicalSettings,
+)
 
 IDS = {"block_pull": "mea/BlockPull-v0", "block_pick": "mea/BlockPick-v0", "drawer_open": "mea/DrawerOpen-v0",
        "surgical_grasp_any": "mea/SurgicalGraspAny-v0"}  # fmt: skip
@@ -127,14 +134,6 @@ class SurgicalGraspGymEnv(_SimGymEnv):
         render_size: int = 256,
     ) -> None:
         self.render_mode, self.render_size = _check_render_mode(render_mode), render_size
-        from proto.discrete_actions import NAMES
-        from services.tasks.surgical.settings import (
-            FSM_STATES,
-            RandomisationSettings,
-            SurgicalCameraSettings,
-            SurgicalSettings,
-        )
-
         settings = SurgicalSettings(
             camera=SurgicalCameraSettings(points_per_segment=points_per_segment),
             randomisation=RandomisationSettings(enabled=domain_randomisation),

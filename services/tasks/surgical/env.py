@@ -15,6 +15,7 @@ from services.tasks.env import EnvSettings, Observation, check_action
 from services.tasks.surgical import objects
 from services.tasks.surgical.camera import CameraPose, ObliqueCamera, image_noise
 from services.tasks.surgical.control import HybridController, centroid_error, fsm_index, fsm_reward
+from services.tasks.surgical.oracle import Oracle
 from services.tasks.surgical.scene import WORKSPACE, Scene, draw
 from services.tasks.surgical.settings import SurgicalCameraSettings, SurgicalSettings
 
@@ -38,8 +39,6 @@ class SurgicalGraspAny:
         return SurgicalGraspEnv(coerce_settings(settings))
 
     def expert(self, env: SurgicalGraspEnv, style: str, rng: np.random.Generator):
-        from services.tasks.surgical.oracle import Oracle
-
         if style not in self.expert_styles:
             raise ValueError(f"{self.name} has expert styles {self.expert_styles}, not {style!r}")
         return Oracle(env)
