@@ -1,21 +1,9 @@
 """`mea play`: see what a policy does, as a video (MP4 or GIF), without writing code.
 
-``mea play RUN_DIR [--version N] [--episodes K] [--seed S] --out FILE.mp4|.gif``: the run's weights
-(the newest, or version N; ``weights_file.resolve`` as `mea serve --weights RUN_DIR`), checked with
-the run's key where the run has one, act deterministically in a fresh env of the run's task on seeds
-S .. S+K-1 (default: the evaluation's held-out seeds), filmed as the evaluator films (the scene beside
-the policy's image, ``services.evaluator.video``).
+Films a run's trained policy acting in a fresh env of its task, or recorded episodes (raw episodes,
+`mea demos`, a `mea robot` session), so that behaviour can be checked by eye.
 
-``mea play --recording FILE.mcap|DIR --out FILE``: recorded episodes (raw episodes, `mea demos`): the
-stored observations (the policy's image, projected from the stored points or the stored image)
-beside a replay of the stored actions in the simulator from the episode's seed (``--no-replay``: the
-stored images alone). The replay is of the recorded actions, so it drifts where the recording was
-made with other env settings; the largest gripper drift is printed. A robot session's recording
-(`mea robot --record`) has no simulator seed: its requests' observations alone, with the replies'
-actions.
-
-Bad input (option, file, weights): one line, exit code 2, nothing written.
-"""
+Design notes: docs/architecture-notes.md, services/play.py."""
 
 from __future__ import annotations
 

@@ -2,18 +2,9 @@
 demonstrations, augment them as the augmenter does, replay every demonstration and copy through
 physics, and count the transitions the simulator reproduces.
 
-Every kind the augmenter stores is audited (``tables.KINDS``): raw demonstrations (the identity
-replays of the noise floor), isometric copies, MEA copies and MEA∘isometric copies, drawn exactly as
-the pipeline draws them (``services.augmenter.core.pipeline``). A copy that cannot be placed in the
-simulator is counted as *not simulable*, apart from valid and invalid. The noise floor (identity
-replays, teleported and rotated views) is measured first and printed beside the tolerance in use,
-with ``tolerance_covers_floor`` in the meta; the simulator's isotropy probe (``audit_isotropy``) is
-printed beside the rotated copies.
+Only orchestration and reports: the replay and what counts as valid are the augmenter's.
 
-The replay itself is the augmenter's library (``services.augmenter.audit_physics``: the augmenter
-runs it on live copies with ``--audit-fraction``), what counts as valid its pure core
-(``services.augmenter.core.audit_metrics``); this module only orchestrates and reports.
-"""
+Design notes: docs/architecture-notes.md, mea_tools/audit/general.py."""
 
 from __future__ import annotations
 

@@ -1,16 +1,8 @@
 """`mea bench soak`: run `mea run` for an hour and watch every service's memory.
 
-The stack is `make run`'s (Block Pull, 2 demos, the mea variant, cpu-small learner) unless
-``--run-args`` says otherwise, stopped after ``--minutes``. A Zenoh client on the launcher's router
-learns each service's pid from its heartbeats; every ``--sample-seconds`` the RSS of each pid (and of
-the launcher) is read from /proc. The table gives, per service instance, RSS at the end of the
-warm-up and at the end (medians over ``--window-minutes``), and the growth between them. The learner's replay arrays are reserved at
-start and their pages touched as they fill, so its growth is also given net of the replay bytes it
-filled in between (from its heartbeats): data kept by design, not a leak. A service that restarts
-starts a new series (its restarts are listed). Sampling stops 5 s before the stack is told to stop:
-the learner's final checkpoint copies its replay (a transient, not growth). Growth after warm-up
-must stay under 5%.
-"""
+The RSS of every service, sampled from /proc over the run: growth after warm-up must stay under 5%.
+
+Design notes: docs/architecture-notes.md, mea_tools/bench/soak.py."""
 
 from __future__ import annotations
 

@@ -1,16 +1,9 @@
 """`mea bench system`: what the whole stack costs and delivers on this machine.
 
-1. **Raw simulator**: ``--actors`` spawned processes step their env with random actions (physics +
-   observation, no transport), for ``--seconds``; total and per-process steps/s.
-2. **Full stack**: ``mea run`` (router, the same number of actors with the learned policy, augmenter,
-   learner, evaluator; the mea variant, the cpu-small learner) for ``--seconds`` after a warm-up.
-   Actors ignore the replay gate here (``--no-follow-gate``), so their rate shows the pipeline's
-   overhead rather than the learner's update budget. From the services' heartbeats (a Zenoh
-   client on the launcher's router): env steps/s (overhead against the raw rate in %),
-   augmented transitions/s, learner updates/s and the fraction of wall time the learner waited for
-   the limiter or data, and, for every weights version, the time from its creation to its load by
-   each consumer (actors and evaluator report it in their heartbeats): p50/p99.
-"""
+The raw simulator's steps/s beside the full `mea run` stack's rates and weights latency, so the
+pipeline's overhead shows.
+
+Design notes: docs/architecture-notes.md, mea_tools/bench/system.py."""
 
 from __future__ import annotations
 

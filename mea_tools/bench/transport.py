@@ -1,21 +1,9 @@
 """Transport benchmark: episode codec speed, Zenoh pub/sub throughput and weight-pull latency.
 
-Three measurements, all on this machine over 127.0.0.1:
+Three measurements on this machine over 127.0.0.1, through the deployed topology (producer ->
+router -> consumer): what the bus costs the services.
 
-1. **Episode codec**: encode and decode (with full validation) of a seeded 50-step ``Episode`` in
-   three variants: point clouds only; plus 2x84x84 ``uint8`` images (the compact projected form);
-   plus 2x84x84 ``float32`` images (what the public code would send).
-2. **Episode pub/sub**: a Zenoh router opened in this process, a subscriber in a spawned process
-   that decodes and validates every episode (``Subscription.recv``), and a publisher in this
-   process. Readiness is the subscriber's liveliness token, never a sleep.
-3. **Weights pull**: a spawned process serves ``WEIGHTS_LATEST`` from pre-encoded bytes; this
-   process queries it with ``min_version`` (pull latency), and times announcement -> blob pulled
-   (the server publishes ``WEIGHTS_ANNOUNCE``, this process receives it and then queries).
-
-Every session is a Zenoh client of the in-process router (the deployed topology: producer ->
-router -> consumer); multicast scouting stays off. MB means 10^6 bytes throughout. Cross-process
-latencies use ``time.monotonic`` (CLOCK_MONOTONIC, one clock for every process on a Linux host).
-"""
+Design notes: docs/architecture-notes.md, mea_tools/bench/transport.py."""
 
 from __future__ import annotations
 

@@ -1,19 +1,9 @@
 """How far the simulator's contact physics is from invariant under turning about the vertical.
 
-A rotated copy (isometric, MEA∘isometric) claims that turning a scene about a vertical axis turns
-its future. Real friction is isotropic; pybullet's is not: a block on the floor that is turned by an
-angle and pushed along its own axis by the same force slides a different distance, and sideways,
-depending on the angle (measured with this module: Block Pull's block slides 114 mm at 0° and 90°,
-150 mm at 45°, drifting up to 15 mm sideways; Block Pick's 227 against 273 mm; neither more solver
-iterations, a smaller time step, cone friction nor maximal coordinates change it). Such a turned copy cannot be reproduced by the
-simulator once objects slide, whatever the augmentation does, so ``mea audit`` reports this floor
-beside its rotated copies' validity.
+pybullet's friction depends on a body's yaw, so a rotated copy cannot be reproduced once objects
+slide; ``drag_isotropy(env)`` measures that floor, which ``mea audit`` reports beside rotated copies.
 
-``drag_isotropy(env)`` runs the probe in the task's own env (its physics settings, block and floor):
-the movable object is put down away from everything at yaw ``angle``, pushed along its own x axis
-(1.5x its sliding friction, applied at the height of its bottom face so that it slides rather than
-tips), left to stop, and its displacement is read in its own frame.
-"""
+Design notes: docs/architecture-notes.md, services/augmenter/audit_isotropy.py."""
 
 from __future__ import annotations
 

@@ -1,17 +1,9 @@
 """Weights on disk: the versions a server can be pinned to, as files.
 
-``<learner run_dir>/weights/weights-<version>.blob`` (``RUN_DIR/learner/weights`` under `mea run`)
-holds the ``WeightsBlob``'s msgpack encoding, sealed with the run's key (``proto.seal``, key
-expression ``FILE_KEY``, sender ``learner/<instance>``) when the run authenticates, plain otherwise.
-The learner keeps its newest few; the evaluator keeps every version it evaluated the same way in
-``RUN_DIR/eval/weights`` (sender ``evaluator/<instance>``). Files are written to a temporary name,
-fsynced and renamed, so a reader never sees half a file; the newest ``keep`` stay
-(``services.common.retention.to_delete``).
+``WeightsBlob`` files, sealed when the run authenticates, written atomically by the learner and the
+evaluator and read back with the checks the bus would make (seal, digest; nothing unpickled).
 
-Reading checks what the bus would check: with the run's key, the seal must verify and name a learner
-or an evaluator (a file sealed by another run, or not sealed at all, is refused); the blob's digest
-must match its tensors (``WeightsBlob`` checks it on decode). Nothing here unpickles.
-"""
+Design notes: docs/architecture-notes.md, services/common/weights_file.py."""
 
 from __future__ import annotations
 

@@ -2,15 +2,7 @@
 the paper's grasp score, and their means over M episodes. Shared by the evaluator and `mea robot`,
 so both score an episode the same way; curves over evaluations are ``services.evaluator.core.curves``.
 
-Per episode
-    ``success`` (the episode terminated, i.e. the sparse reward fired), ``length`` H (env steps taken)
-    and the undiscounted ``ret``. The paper's grasp score is ``s_g = (H_max - H) / H_max`` on success
-    and 0 on failure, with ``H_max`` the time limit (50 steps): a faster success scores higher. (The
-    GASv2 evaluation code computes it in this order; the MEA paper prints the terms swapped.)
-
-Per evaluation
-    :func:`summarize` averages M episodes: success rate, mean return, mean length, mean grasp score.
-"""
+Design notes: docs/architecture-notes.md, services/episodes/scores.py."""
 
 from __future__ import annotations
 

@@ -1,22 +1,10 @@
 """`mea plot RUN_DIR... [--out FILE.png] [--label-by KEY]`: learning curves like the paper's figures.
 
-Reads each run's ``RUN_DIR/eval/history.jsonl`` (written by ``mea evaluator``), groups runs by a
-label (runs with the same label are seeds of one configuration), and draws success rate against
-training env steps: the mean over a label's runs as a line, mean ± std as a shaded band. Runs are
-put on a common env-step grid first (``services.evaluator.core.curves.align``: step-wise hold of
-the last evaluation by default, or linear interpolation; a run contributes only within its own
-evaluated span). It also prints one table row per label: runs, evaluations, final success (the
-last evaluation of each run, mean ± std over runs), the area under the success curve (AUC: mean
-success over each run's evaluated env-step range by the trapezoid rule, in [0, 1]; mean ± std over
-runs), and the improvement timestep (first env steps after which success stays > 0), both averaged
-over the runs that have one and measured on the mean curve (the paper's reading).
+Success rate against training env steps from each run's ``RUN_DIR/eval/history.jsonl``, the runs of
+one label (seeds of one configuration) as mean ± std, and a table per label (final success, AUC,
+improvement timestep), so variants compare as the paper compares them.
 
-Label: the ``--label-by`` key (default ``variant``; dots reach into nested objects) of
-``RUN_DIR/config.json`` when present, else the run directory's name.
-
-A run directory without a history (or with no evaluation that has known env steps) is an error:
-exit status 2 and a message naming the path. Plotting needs matplotlib (Agg backend, no display).
-"""
+Design notes: docs/architecture-notes.md, services/evaluator/plot.py."""
 
 from __future__ import annotations
 

@@ -1,19 +1,9 @@
 """`mea robot`: drive an arm through `mea serve` over Zenoh (``--sim``: one of the project's tasks).
 
-Each episode: ``reset`` the arm and the server's session, then per step send the observation
-(``ActRequest``), wait for the action (``ActReply``) and execute it. Around that loop a guard thread
-applies the robot side's own rules (``core.robot_safety``): e-stop engaged, operator or server
-liveliness lost, or no command for ``command_timeout`` make it call ``adapter.hold`` at once, and the
-loop sends holds instead of the server's actions until the cause clears. A request that gets no
-reply within ``action_timeout`` is a hold too (``no_reply``).
+Each episode resets the arm and the server's session, then sends observations and executes the
+server's actions, while a guard thread holds the arm on the robot side's own safety rules.
 
-``--latency-ms``/``--jitter-ms`` delay every request by ``max(0, latency + jitter * N(0, 1))`` after
-the observation is stamped (seeded), as a network or a slow perception stack would; the server's
-watchdog sees the age. The session is recorded to MCAP (``--record``): every request and reply as the
-wire messages (log times: sent, received), and the episodes' outcomes and the settings as metadata.
-``--out`` writes the summary as JSON: per-episode seed, success, length, return and holds, and
-round-trip latency percentiles.
-"""
+Design notes: docs/architecture-notes.md, services/inference/robot.py."""
 
 from __future__ import annotations
 

@@ -1,17 +1,9 @@
 """``--init-actor PATH``: a fresh learner's actor starts from weights on disk (a clone written by
 `mea bench imitation`, or a weights file / run dir a learner or evaluator wrote).
 
-The file is read by the weights-file reader (``services.common.weights_file``: digest checked, nothing
-unpickled). A sealed file is checked with the key of the run that wrote it: the ``run.key`` in the
-file's directory or one of the three above it (``RUN_DIR/learner/weights/weights-N.blob`` ->
-``RUN_DIR/run.key``); a sealed file with no key there is refused. It must be an Equi-RSAC policy of the
-learner's algorithm and observation whose tensors fit the learner's actor name for name and shape for
-shape (``check_fits``), else ValueError naming what differs.
+The file is checked (digest, seal with its run's key, fit to the learner's actor) before it loads.
 
-When the learner shares the actor's encoder with the critic (``sac.share_encoder``: the actor reads
-``critic.encoder``), loading the actor loads that encoder too; the target critic is then made equal
-to the critic again, as at any fresh start.
-"""
+Design notes: docs/architecture-notes.md, services/learner/init_actor.py."""
 
 from __future__ import annotations
 

@@ -1,20 +1,9 @@
 """gymnasium API for the tasks, so other RL libraries can use them.
 
-Ids: ``mea/BlockPull-v0``, ``mea/BlockPick-v0``, ``mea/DrawerOpen-v0``, ``mea/SurgicalGraspAny-v0``
-(registered on import of this module, and through the ``gymnasium.envs`` entry point when the
-package is installed).
-Observation: dict of ``points`` (S, P, 3) float32 in the gripper-centric frame and ``jaw`` (1,);
-``depth`` (84, 84) is added with ``depth_image=True``. Privileged state goes in ``info``.
+Ids ``mea/BlockPull-v0``, ``mea/BlockPick-v0``, ``mea/DrawerOpen-v0``, ``mea/SurgicalGraspAny-v0``
+(registered on import); ``render_mode="rgb_array"`` lets gymnasium's wrappers record an env.
 
-Surgical Grasp Any (``SurgicalGraspGymEnv``) acts in ``Discrete(9)`` (``proto.discrete_actions.NAMES``)
-and adds ``image`` (the (3, 64, 64) uint8 DSA policy image, ``services.observation.dsa``),
-``controller_state`` (1: the hybrid P-controller takes the next step, the action is ignored) and
-``fsm_state`` to the observation; its points are in sim units (5 per real metre).
-
-``render_mode="rgb_array"``: ``render()`` returns a third-person colour picture of the scene
-((render_size, render_size, 3) uint8, ``services.tasks.camera.scene_image``), so gymnasium's
-wrappers (``RecordVideo``, which needs moviepy; ``RenderCollection``) record what the env does.
-"""
+Design notes: docs/architecture-notes.md, services/tasks/gym_env.py."""
 
 from __future__ import annotations
 

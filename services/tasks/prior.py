@@ -1,16 +1,9 @@
 """Measure the deterministic-transition prior MEA relies on (paper Sec. IV-D, third prior).
 
-Without contact, a translation action moves every object point by ``-a_xyz * DELTA_XYZ`` in the
-gripper-centric frame, and a rotation action turns the gripper's points by ``a_theta *
-DELTA_THETA`` about that frame's z axis. Observations are resampled each step, so points have no
-correspondence; the measures compare fused (pre-sampling) clouds:
+Without contact an action moves the observed points by a known amount in the gripper-centric frame;
+this measures how far the simulator is from that (translation, rotation and Chamfer residuals).
 
-- translation error: |displacement of an object's point centroid in the gripper frame + a*Delta|;
-- rotation error: best-fit yaw of the gripper cloud between steps (Chamfer minimum over a fine
-  grid) minus ``a_theta * DELTA_THETA``;
-- Chamfer residual (mm) of each object's cloud after applying the predicted translation, a
-  floor set by point density and view changes.
-"""
+Design notes: docs/architecture-notes.md, services/tasks/prior.py."""
 
 from __future__ import annotations
 

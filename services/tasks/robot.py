@@ -1,16 +1,10 @@
 """Kuka iiwa with its parallel gripper (pybullet_data `kuka_iiwa/kuka_with_gripper2.sdf`).
 
-Control follows the paper's action model: the policy commands deltas of a *pivot* point and a yaw.
-The pivot is the centroid of the gripper's points (the origin of the gripper-centric frame), so a
-translation action moves the whole gripper by ``a_xyz * DELTA_XYZ`` and a rotation action turns it
-by ``a_theta * DELTA_THETA`` about the vertical axis through that centroid, which leaves every
-object point where it was in the gripper-centric frame (the transition prior MEA relies on).
-The model's fingers sit 24 mm off the wrist axis; rotating about the wrist would move the centroid.
+The policy commands deltas of a pivot (the gripper points' centroid) and a yaw about it, tracked in
+real physics, so that a rotation leaves every object point put in the gripper-centric frame (the
+transition prior MEA relies on) and contacts are simulated.
 
-The commanded pose is tracked by inverse kinematics and joint position motors stepped in real
-physics until the gripper settles, so contacts (pushing a drawer, lifting a cube) are simulated,
-not teleported.
-"""
+Design notes: docs/architecture-notes.md, services/tasks/robot.py."""
 
 from __future__ import annotations
 

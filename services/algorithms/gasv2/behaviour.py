@@ -1,21 +1,9 @@
 """DreamerV2's actor and critic learned in imagination, for GASv2's nine discrete actions.
 
-From N start states z_0 (posteriors of observations where the policy acts), the frozen world model
-rolls out H steps: a_t ~ pi(. | z_t), z_{t+1} = img_step(z_t, DISCRETE_FEATURES[a_t]). The heads give
-the reward r_{t+1} arriving with z_{t+1} and its discount d_{t+1} = discount x P(z_{t+1} not terminal).
+Both learn from lambda-returns of H-step rollouts of the frozen world model (the actor by REINFORCE
+with the slow critic as baseline); neither loss reaches the world model.
 
-    R_t = r_{t+1} + d_{t+1} [(1 - lam) v(z_{t+1}) + lam R_{t+1}],   R_H = v(z_H)    (slow critic v)
-    w_t = d_1 ... d_t  (w_0 = 1): the weight of acting from z_t (0 once a terminal was reached)
-    L_actor  = -mean_t,n w_t [log pi(a_t | z_t) sg(R_t - v(z_t)) + actor_entropy H[pi(. | z_t)]]
-    L_critic =  mean_t,n w_t 0.5 (V(z_t) - sg(R_t))^2                     t = 0 .. H-1
-
-DreamerV2 (discrete actions) trains the actor by REINFORCE with the slow critic as baseline. One
-deliberate difference in indexing: DreamerV2 adds the reward predicted *for* z_t to R_t (its
-``lambda_return(reward[:-1], ...)``, fixed in DreamerV3); here R_t starts with the reward of the
-step the action causes, so that R_t - v(z_t) is the advantage of a_t. The rollout runs without
-gradients, and the actor and critic read its features detached: neither loss reaches the world
-model, and each reaches only its own network.
-"""
+Design notes: docs/architecture-notes.md, services/algorithms/gasv2/behaviour.py."""
 
 from __future__ import annotations
 

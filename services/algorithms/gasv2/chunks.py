@@ -1,21 +1,7 @@
 """The world model's training batch: ``B`` windows of ``L`` consecutive observations, in DreamerV2's
 step convention (what arrives *with* observation t: the action that led to it and its reward).
 
-Observation ``t`` of a window is episode row ``t0 + t``. For that row:
-
-* ``actions[:, t]``: the feature (``action_features``) of the action executed *into* it, i.e. of
-  the episode's action ``t0 + t - 1``; zeros where ``is_first`` (the episode's first observation);
-* ``rewards[:, t]``: the reward of that action; 0 where ``is_first``;
-* ``discounts[:, t]``: 0 where the row is terminal (the episode *terminated* on the action into it:
-  success or a failed grasp), 1 otherwise (a time-limit end is not terminal);
-* ``handover[:, t]``: the hybrid controller has handed over at this observation
-  (``controller_state`` 0), so the policy chooses the next action from it;
-* ``mask[:, t]``: a real observation (False: padding past the episode's last observation, where
-  every other field is zero).
-
-A window never crosses an episode boundary; it starts at an episode's first row only where
-``is_first[:, 0]`` says so (its recurrent state starts from zeros either way, as in DreamerV2).
-"""
+Design notes: docs/architecture-notes.md, services/algorithms/gasv2/chunks.py."""
 
 from __future__ import annotations
 

@@ -1,16 +1,10 @@
 """GASv2's policy runtime: the published ``LatentPolicy`` (encoder, RSSM, actor) stepped one
 observation at a time, with its recurrent latent state carried across an episode.
 
-The world model's posterior at observation t needs the action that *led* to it as executed, which
-in Surgical Grasp Any is the hybrid controller's while it drives the approach, not the policy's.
-So the consumer tells the runtime what was executed after every env step (``executed``); the
-runtime keeps the jaw command it implies, to turn its next discrete choice into the 5-vector the
-env takes (``proto.discrete_actions.to_vector``) and the executed action into the world model's
-feature (``action_features``). While the controller drives, the policy's choice is ignored by the
-env but the latent state still follows the observations, as in the learner's training windows.
+The consumer reports every executed action (``executed``: the controller's too), which the world
+model's posterior needs. Stochastic (actors) or deterministic (the evaluator).
 
-Stochastic (actors: a sample of the actor's categorical) or deterministic (the evaluator: its mode).
-"""
+Design notes: docs/architecture-notes.md, services/algorithms/gasv2/policy.py."""
 
 from __future__ import annotations
 

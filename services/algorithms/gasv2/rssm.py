@@ -1,19 +1,9 @@
 """DreamerV2's recurrent state-space model with categorical latents, and its balanced KL loss.
 
-A model state is ``RSSMState(deter, logits, stoch)``: the GRU state (..., deter), the logits of the
-latent's ``stoch`` categoricals (..., stoch, classes) and a one-hot sample of them flattened to
-(..., stoch * classes) with straight-through gradients. ``features(state) = [stoch, deter]`` is what
-the heads, the actor and the critic read.
+A model state is ``RSSMState(deter, logits, stoch)``; ``features(state)`` is what the heads, the
+actor and the critic read.
 
-    prior      (img_step):  h_t = GRU(h_{t-1}, act(W [z_{t-1}, a_t])),  z_t ~ p(z_t | h_t)
-    posterior  (obs_step):  z_t ~ q(z_t | h_t, e_t),  e_t = encoder(x_t)
-
-``a_t`` is the action *into* observation t (``ChunkBatch``'s convention), and at ``is_first`` the
-previous state and action are zeroed first, so every episode starts from the same state.
-
-Sampling uses Gumbel-max on an optional ``torch.Generator`` (the agent owns one, so that an update
-is reproducible from a checkpoint alone).
-"""
+Design notes: docs/architecture-notes.md, services/algorithms/gasv2/rssm.py."""
 
 from __future__ import annotations
 

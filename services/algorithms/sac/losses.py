@@ -1,19 +1,9 @@
 """Recurrent SAC's losses (Equi-RSAC) over whole padded episodes, as pure functions.
 
-Shapes: B episodes padded to L transitions. ``images`` has L+1 observations per episode (the next
-observation of step t is observation t+1: every sequence is encoded once and the targets reuse it),
-``actions``/``rewards``/``terminated``/``mask`` have L rows; ``mask`` is 1 on real transitions and 0
-on padding. The recurrent nets read observation t with the previous action a_{t-1} (zeros at t = 0).
+The critic, actor, temperature (alpha) and behaviour-cloning losses over B episodes padded to L
+transitions (``mask``), each sequence encoded once.
 
-    critic:  y_t = r_t + gamma (1 - term_t) [min_i Q'_i(h'_{t+1}, a'_{t+1}) - alpha log pi(a'_{t+1} | h_{t+1})]
-             L_Q = sum_i sum_t mask_t (Q_i(h_t, a_t) - y_t)^2 / sum_t mask_t        a' ~ pi (no gradient)
-    actor:   L_pi = sum_t mask_t [alpha log pi(a~_t | h_t) - min_i Q_i(h_t, a~_t)] / sum_t mask_t,  a~ ~ pi (reparameterised)
-    alpha:   L_alpha = -log_alpha * sum_t mask_t (log pi(a~_t) + target_entropy) / sum_t mask_t
-    BC:      L_bc = sum_t mask_t demo_b |tanh(mean_t) - a_t|^2 / sum_t mask_t demo_b    (``bc_weight`` > 0)
-
-A truncated episode bootstraps from its last observation; only ``terminated`` stops it. ``n_step``
-and ``return_bound`` change y_t (``n_step_targets``, ``bounded_targets``).
-"""
+Design notes: docs/architecture-notes.md, services/algorithms/sac/losses.py."""
 
 from __future__ import annotations
 

@@ -1,21 +1,9 @@
 """Isometric SO(2) augmentation (Equi-RSAC style): one rotation about the vertical for a whole episode.
 
-Rotating every point cloud about the gripper-centric z axis by phi, and the (dx, dy) part of every
-action by the same phi, is the whole episode seen in a world rotated by phi (re-centring on the
-gripper commutes with the rotation). dz, dtheta, the jaw, rewards and flags are unchanged.
+Point clouds and the (dx, dy) of actions turn by one angle phi, drawn so that no rotated action needs
+clipping: every copy is exact (its stored actions produce its stored next observations).
 
-Copies are exact, never clipped: the public code clips rotated (dx, dy) to [-1, 1], which shortens
-large diagonal moves, so the stored action no longer produces the stored next observation (up to
-2 cm off). Here ``draw_rotation`` only returns angles for which every rotated (dx, dy) of the
-episode(s) stays inside [-1, 1]: phi uniform in [0, 2 pi), redrawn up to ``ROTATION_DRAWS`` times,
-else a uniformly drawn multiple of 90 degrees (a permutation with signs: always exact, and
-computed with exact cosines and sines). ``rotate_actions`` refuses an angle that would need
-clipping instead of silently changing the action.
-
-Privileged world poses are rotated about the vertical through ``centre`` (the workspace centre);
-in the gripper-centric observation any vertical axis gives the same copy, so the physics audit
-(``services.augmenter.audit_placement``) picks one that keeps the rotated scene in the workspace.
-"""
+Design notes: docs/architecture-notes.md, services/augmenter/core/isometric.py."""
 
 from __future__ import annotations
 

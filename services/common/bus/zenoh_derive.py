@@ -1,16 +1,9 @@
 """One Zenoh config file for a router and the clients on its own host (`mea run --zenoh-config`).
 
-Zenoh keeps the two sides of a link in separate keys: `transport/link/tls` has `listen_certificate`
-/ `listen_private_key` (the router's certificate) beside `connect_certificate` /
-`connect_private_key` (a client's, for mutual TLS) and `root_ca_certificate` (the CA that signs the
-other side); `transport/auth/usrpwd` has `dictionary_file` (the credentials a router checks) beside
-`user` / `password` (those a client presents). So one file holds both sides: the router reads it as
-it is, and :func:`client_config` derives the config of a client on the same host from it: mode
-`client`, connected to the router's listen endpoints (an unspecified address, 0.0.0.0 or [::],
-becomes the loopback one), with the file's `transport` minus what only a listener uses (`listen_*`
-TLS keys, the credential dictionary), its `scouting`, `namespace` and `timestamping`, and nothing
-else (no access control, plugins, id, listen or connect endpoints of its own).
-"""
+The file holds both sides of each link (TLS, credentials): the router reads it as it is, and
+:func:`client_config` derives the config of a client on the same host from it.
+
+Design notes: docs/architecture-notes.md, services/common/bus/zenoh_derive.py."""
 
 from __future__ import annotations
 

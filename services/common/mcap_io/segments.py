@@ -1,18 +1,9 @@
 """A recording in numbered segments, so that a run of days keeps its disk use bounded.
 
-:class:`SegmentedRecorder` writes ``<prefix>-<run>-<index>.mcap`` files in one directory (``run``: the
-launcher's resume count). It starts the next segment once the open one reaches ``segment_bytes`` or
-has been open ``segment_seconds``; each segment is a complete MCAP file of its own (written through
-``.tmp`` and renamed on close like every :class:`McapRecorder` file), with the ``run`` metadata
-repeated and a ``segment`` record (``run``, ``index``). After each segment closes, the oldest
-finished segments of the directory (every run's) go while they take more than ``max_bytes`` in all;
-the newest finished one always stays, and the open one is never touched (0: keep everything).
+:class:`SegmentedRecorder` writes bounded MCAP segments and deletes the oldest finished ones past a
+byte budget; :func:`recording_segments` and :func:`read_recording` read them back in order.
 
-:func:`recording_segments` lists them oldest first (numerically: ``raw-0-0010`` after ``raw-0-0009``,
-``raw-10-…`` after ``raw-9-…``) and :func:`read_recording` reads them all in that order. A recording
-from before segments (``raw-<run>.mcap``) reads as the first part of its run. The naming and the
-deletion policy are :mod:`services.common.retention`'s.
-"""
+Design notes: docs/architecture-notes.md, services/common/mcap_io/segments.py."""
 
 from __future__ import annotations
 

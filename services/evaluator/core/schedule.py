@@ -1,19 +1,9 @@
 """When the evaluator evaluates, and on which held-out seeds: pure decisions (no clock, no transport).
 
-Cadence, in the learner's training env steps (the ``inserted_steps`` of its latest ``ReplayGate``):
-the first version is evaluated as soon as it exists (after waiting up to ``first_gate_wait`` s for a
-gate, so it gets its env steps); after that, once the steps have advanced by ``every_env_steps``
-since the last evaluation. Without gates (steps unknown, -1, at the last evaluation) every new version
-is due; an evaluator whose history has steps (restarted, or a resumed run) waits for the learner's
-gate instead, so no evaluation is recorded at -1 then; if the steps go back (a learner restarted in the run dir), the next version is due at once. With a budget
-``final_env_steps`` B, the first version pulled once the steps reach B is due off the cadence too,
-so a run always ends with an evaluation at its budget. The last evaluation's steps come from the
-eval history when there is one, so a restarted evaluator keeps the cadence.
+Evaluations follow the learner's training env steps (a cadence, plus one at the budget), on the same
+held-out seeds every time, so that a run's evaluations compare with each other and across runs.
 
-Seeds: ``episodes`` M per evaluation, the same every time: ``seed_base + k`` for k < M (held out:
-no actor trains on them). A version pulled at or past the budget gets ``final_episodes`` instead
-when set, on the same sequence: the first M of its seeds are every other evaluation's.
-"""
+Design notes: docs/architecture-notes.md, services/evaluator/core/schedule.py."""
 
 from __future__ import annotations
 

@@ -1,19 +1,9 @@
 """The hybrid controller of Surgical Grasp Any (reference ``wrapper/pid.py``) and the FSM rewards.
 
-The P-controller measures the error between the gripper's and the object's voxel centroids in the
-occupancy grid (``services.observation.dsa.voxel_centroid`` with the task's ``DsaSpec``, the one
-voxelisation the policy image uses too; occupancy units: the grid's unit cube, 1 unit = 1 sim unit
-= 20 cm real here), plus an offset that keeps the gripper above the object:
+A P-controller on voxel centroids drives the approach, then hands over to the policy for the rest of
+the episode; ``active`` is what the observation reports as ``controller_state``.
 
-    err = centroid(gripper) - centroid(object) + error_offset
-
-While any axis has |err| > phase_threshold it drives (action = clip(-Kp * err, -1, 1) on the axes
-outside the threshold, 0 on the others, no rotation, jaw open). Once every axis is inside, it hands
-over to the policy and is *latched* off for the rest of the episode (the reference re-enters it when
-the error grows again; here the policy keeps control, so an episode has one approach phase and one
-policy phase). ``active`` is what the observation reports as ``controller_state``: 1 when the next
-action will be the controller's.
-"""
+Design notes: docs/architecture-notes.md, services/tasks/surgical/control.py."""
 
 from __future__ import annotations
 

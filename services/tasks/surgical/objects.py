@@ -1,18 +1,9 @@
 """The three target objects of Surgical Grasp Any, built from pybullet primitives at a drawn scale.
 
-Every object lies flat on the tray. Its base frame is its *grasp point* (where the oracle centres
-the jaws), its local x the direction along the object there, so the jaws grasp it closing along
-local y: the grasp yaw is the object's yaw + pi/2, modulo pi (the jaws are two-fold symmetric).
+A needle, a block and a rod, each lying flat on the tray with its base frame at its grasp point
+(where the oracle centres the jaws).
 
-- needle: a curved suture needle, a 150-degree arc of a 7 mm-radius circle in 1 mm-radius wire
-  (the reference's 40 mm needle at its 0.5 scale, thickened to stay visible at 128 px), as a
-  compound collision shape of capsules along the arc; the grasp point is the arc's midpoint, where
-  the wire runs along local x and the arc bends towards -y.
-- block: an 8 x 3.5 x 3 mm box.
-- rod: a 16 mm-long cylinder of 1.5 mm radius, along local x.
-
-All sizes are multiplied by the episode's scale (U(0.75, 1.25) by default).
-"""
+Design notes: docs/architecture-notes.md, services/tasks/surgical/objects.py."""
 
 from __future__ import annotations
 

@@ -1,18 +1,9 @@
 """The scripted oracle of Surgical Grasp Any, acting in the nine discrete actions.
 
-Privileged: it reads the object's grasp point, yaw and height and the commanded tool state. Like the
-reference's discrete oracle (``DiscreteAction.get_oracle_action``), each step takes the axis with the
-largest error, counted in discrete steps, with the yaw error weighted x0.4:
+The task's expert: privileged, like the reference's discrete oracle, it aligns the jaws with the
+object's grasp point, descends, closes the jaw and lifts.
 
-1. align: x, y and yaw to the grasp point (the yaw among the object's two grasp yaws nearest the
-   tool's), rising if needed so the open tips stay ``ABOVE`` the object's top, until each axis is
-   within half a step (the argmax runs over the axes not yet there);
-2. descend: -z until the tips are at least ``MARGIN`` below the object's top (the workspace stops
-   them at the tray);
-3. close the jaw (the toggle); 4. once grasped, +z until the episode ends.
-
-It is called on every step, also while the P-controller acts (its action is then ignored).
-"""
+Design notes: docs/architecture-notes.md, services/tasks/surgical/oracle.py."""
 
 from __future__ import annotations
 

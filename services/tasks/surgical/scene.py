@@ -1,17 +1,8 @@
 """The world of Surgical Grasp Any: tray, instrument and one object, rebuilt from the seed at reset.
 
-The tray's top is the plane z = 0; the workspace is x, y in [-0.25, 0.25] (10 x 10 cm real) and
-closed-jaw-tip heights z in [0, 0.35] (7 cm real). The object lies on the tray, held to it by a
-fixed constraint (maxForce 20, the reference's) until a grasp replaces that by a constraint to the
-wrist. The instrument does not collide with the tray (the workspace keeps its tips above it).
+Every reset builds the world again in the same order, so an episode depends on its seed only.
 
-Placement (reference ``grasp_any_v2``): the object's grasp point at a workspace ratio of U(-0.8, 0.8)
-in x and y, yaw U(-pi, pi); the gripper's tips at x ratio -0.9, y ratio U(-0.9, 0.9), z ratio
-U(0.5, 0.9), yaw U(-0.9, 0.9) x 180 degrees, jaw open.
-
-Every reset calls ``resetSimulation`` and builds the world again in the same order, so an episode
-depends on its seed only (no contact caches or body ids carried over from the last one).
-"""
+Design notes: docs/architecture-notes.md, services/tasks/surgical/scene.py."""
 
 from __future__ import annotations
 
