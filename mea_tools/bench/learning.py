@@ -123,6 +123,10 @@ class LearningBenchConfig:
     """Demonstrations per run (0: the paper's, 2 and `make run`'s; 10 on surgical_grasp_any)."""
     actors: int = 1
     """Actor processes per run."""
+    envs_per_actor: int = 1
+    """Envs each actor steps in lockstep (`mea run --envs-per-actor`)."""
+    learner_device: str = "cpu"
+    """Every run's learner device: cpu, cuda or cuda:N (given again on resume: it is this machine's)."""
     parallel: int = 1
     """Runs trained at once, each with its own router port and run dir (1: one after another)."""
     eval_every: int = 0
@@ -138,7 +142,7 @@ class LearningBenchConfig:
     json: bool = False
     """Print exactly one JSON object instead of tables."""
     extra: tuple[str, ...] = field(default_factory=tuple)
-    """Extra `mea run` arguments for every new run (e.g. --extra=--learner-device=cuda)."""
+    """Extra `mea run` arguments for every new run (e.g. --extra=--track)."""
     bootstrap_reps: int = 10_000
     """Stratified-bootstrap resamples per interval."""
     bootstrap_seed: int = 0
@@ -195,6 +199,15 @@ def _check_options(cfg: LearningBenchConfig) -> None:
         raise _refuse(f"--{negative[0].replace('_', '-')} must be >= 0 (0: the preset's)")
     if cfg.parallel < 1:
         raise _refuse(f"--parallel must be >= 1, not {cfg.parallel}")
+    if cfg.envs_per_actor < 1:
+        raise _refuse(f"--envs-per-actor must be >= 1, not {cfg.envs_per_actor}")
+    if cfg.learner_device != "cpu":
+        from services.learner.config import check_device  # deferred: torch, for a CUDA device only
+
+        try:
+            check_device(cfg.learner_device, "--learner-device")
+        except ValueError as exc:
+            raise _refuse(str(exc)) from None
     if cfg.bootstrap_reps < 1:
         raise _refuse(f"--bootstrap-reps must be >= 1, not {cfg.bootstrap_reps}")
     unknown = set(cfg.variants) - set(VARIANTS)
@@ -280,7 +293,8 @@ def run_args(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> 
     """`mea run` arguments of a new run: `make run`'s recipe plus this run's variant, seed, budget and
     evaluation settings; the learner preset only where the benchmark's preset names one."""
     args = ["--task", cfg.task, "--demos", str(s.demos), *VARIANTS[variant], "--seed", str(seed),
-            "--actors", str(cfg.actors), "--env-steps", str(s.budget), "--eval-every", str(s.eval_every),
+            "--actors", str(cfg.actors), "--envs-per-actor", str(cfg.envs_per_actor),
+            "--learner-device", cfg.learner_device, "--env-steps", str(s.budget), "--eval-every", str(s.eval_every),
             "--eval-episodes", str(s.eval_episodes), "--final-eval-episodes", str(s.final_eval_episodes)]  # fmt: skip
     if s.random_steps is not None:
         args += ["--random-steps", str(s.random_steps)]
@@ -396,7 +410,8 @@ def train(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> Pat
         _log(f"{run_dir.name}: finished earlier, reused")
         return run_dir
     if (run_dir / "config.json").exists():  # an interrupted run: continue it with its saved settings
-        args = ["--resume", str(run_dir)]
+        # and this machine's learner device (a resume takes the device from its command line)
+        args = ["--resume", str(run_dir), "--learner-device", cfg.learner_device]
     else:
         args = run_args(cfg, variant, seed, s)
     with _PORTS.hold() as port:

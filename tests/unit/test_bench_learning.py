@@ -11,6 +11,7 @@ import threading
 import time
 
 import pytest
+import torch
 
 from mea_tools.bench import learning
 from mea_tools.bench.learning import LearningBenchConfig, run, run_args, settings
@@ -237,6 +238,9 @@ def test_interrupted_runs_are_resumed_new_ones_started_and_their_wall_time_added
     resume_cmd, new_cmd = FakeProc.commands
     assert resume_cmd[resume_cmd.index("run") + 1 :][:2] == ["--resume", str(unfinished)]
     assert "--variant" not in resume_cmd  # the saved settings, not new ones
+    # the learner device is the machine's: a resume names it as a new run does
+    assert resume_cmd[resume_cmd.index("--learner-device") + 1] == "cpu"
+    assert new_cmd[new_cmd.index("--learner-device") + 1] == "cpu"
     assert new_cmd[new_cmd.index("--variant") + 1] == "mea" and "--resume" not in new_cmd
     assert new_cmd[new_cmd.index("--run-dir") + 1] == str(out / "block_pull-mea-s0")
     wall = json.loads((unfinished / learning.WALL_FILE).read_text())
@@ -313,6 +317,8 @@ def test_public80_trains_equirsac_and_equiobs_on_80_demos_and_1000_random_steps_
         ({"seeds": -1}, "--seeds must be >= 0"),
         ({"bootstrap_reps": 0}, "--bootstrap-reps must be >= 1"),
         ({"parallel": 0}, "--parallel must be >= 1, not 0"),
+        ({"envs_per_actor": 0}, "--envs-per-actor must be >= 1, not 0"),
+        ({"learner_device": "gpu"}, "--learner-device must be cpu, cuda or cuda:N, not 'gpu'"),
     ],
 )
 def test_bad_options_are_refused_in_one_line_before_anything_is_written(tmp_path, options, says):
@@ -359,6 +365,22 @@ def test_public15_prints_ours_beside_the_public_reproduction_at_each_5k(tmp_path
                                         seeds=1, json=True, bootstrap_reps=REPS))  # fmt: skip
     one = {r["env steps"]: r["verdict"] for r in far_below["results"]["against the public reference"]}
     assert one[15_000] == "below"  # one seed at .3: its interval is [.3, .3]
+
+
+def test_envs_per_actor_and_the_learner_device_reach_each_run_as_mea_run_reads_them(tmp_path):
+    cfg = LearningBenchConfig(out=tmp_path, variants=("mea",), envs_per_actor=4, learner_device="cpu")
+    parsed = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, "mea", 2, settings(cfg)), "mea run", "")
+    assert (parsed.envs_per_actor, parsed.learner_device, parsed.seed) == (4, "cpu", 2)
+
+
+def test_a_gpu_this_machine_lacks_is_refused_before_anything_is_written(tmp_path):
+    out = tmp_path / "bench"
+    # no CUDA here: any cuda device; with CUDA: the index one past the last GPU
+    device = f"cuda:{torch.cuda.device_count()}" if torch.cuda.is_available() else "cuda"
+    with pytest.raises(SystemExit, match=f"--learner-device '{device}'") as exc:
+        run(LearningBenchConfig(out=out, learner_device=device))
+    assert "\n" not in str(exc.value)
+    assert not out.exists()
 
 
 def test_extra_mea_run_arguments_reach_every_new_run(tmp_path, monkeypatch):
