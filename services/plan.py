@@ -117,7 +117,9 @@ def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any
     (it shares the cores with actors and augmenter; two OpenMP threads on a busy 2-core machine wait
     on each other), state under RUN_DIR/learner, resumed on --resume. ``learner_args`` change the
     preset before all that, so the run's own settings win."""
-    preset = override(LEARNER_PRESETS[learner_preset(run)], run.learner_args, "--learner-args")
+    # the run's device first too: a learner flag that needs a GPU (--cuda-graphs) is checked against it
+    on_device = dataclasses.replace(LEARNER_PRESETS[learner_preset(run)], device=run.learner_device)
+    preset = override(on_device, run.learner_args, "--learner-args")
     return dataclasses.replace(
         preset,
         algorithm=preset.algorithm.for_run(variant(run.variant).observation, network_group(run.task)),

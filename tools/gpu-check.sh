@@ -10,7 +10,8 @@
 #   install  the carried wheels into /tmp/site; PYTHONPATH=/tmp/site:$PWD
 #   env      import pybullet, zenoh, mcap, torch; Python, torch, CUDA versions, the GPU, nvidia-smi
 #   tests    every test file marking CUDA tests (its CPU tests too) and the SAC/trainer unit tests
-#   bench    `mea bench learner --device cuda` for paper (C4, D4, the plain twin) and cpu-small:
+#   bench    `mea bench learner --device cuda` for paper (C4, D4, the plain twin) and cpu-small,
+#            paper C4 and cpu-small again with --cuda-graphs:
 #            ms/update p50/p99; then the same presets on this machine's CPU, the baseline
 #   run      a short paper-preset run (Block Pull, EquiObs, 80 demos, 1,000 random steps, 3,000 env
 #            steps, 8 actors, the learner on CUDA) in /tmp, stopped by --duration-seconds at what is
@@ -150,6 +151,10 @@ fi
 bench=("$PY" -m services.cli bench learner --consumers 0 --gasv2-presets --json)  # one JSON line each
 STDOUT_TO=$OUT/bench.jsonl step "bench-$([ "$DRY" = 1 ] && echo dev || echo "$DEVICE")" 150 "$LOG" "${bench[@]}" --device "$DEVICE" \
   --variants "${variants[@]}" "${updates[@]}"
+if [ "$DRY" != 1 ]; then  # the same paper update replayed as a CUDA graph (--cuda-graphs)
+  STDOUT_TO=$OUT/bench.jsonl step bench-graphs 90 "$LOG" "${bench[@]}" --device "$DEVICE" --cuda-graphs \
+    --variants paper:c4 cpu-small:c4 "${updates[@]}"
+fi
 STDOUT_TO=$OUT/bench.jsonl step bench-cpu 90 "$LOG" "${bench[@]}" --device cpu --variants "${cpu_variants[@]}" \
   "${cpu_updates[@]}"
 "$PY" - "$OUT/bench.jsonl" <<'PY' | tee -a "$SUMMARY"
@@ -161,7 +166,8 @@ for line in open(sys.argv[1]):
     meta = r["meta"]
     print(f"bench learner on {meta.get('device')} {meta.get('gpu') or ''} (torch {meta['torch']}, {meta['threads']} threads)")
     for row in r["results"]["gradient updates"]:
-        print(f"  {row['variant']:<16} batch {row['batch (episodes)']:>2}  p50 {row['ms/update p50']:9.1f} ms"
+        graphs = " graphed" if row.get("CUDA graphs") else ""
+        print(f"  {row['variant'] + graphs:<16} batch {row['batch (episodes)']:>2}  p50 {row['ms/update p50']:9.1f} ms"
               f"  p99 {row['ms/update p99']:9.1f} ms  sample+copy {1e3 * row['sample + tensors s']:7.1f} ms"
               f"  ({row['timed updates']} updates)")
 PY

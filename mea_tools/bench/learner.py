@@ -63,6 +63,8 @@ class LearnerBenchConfig:
     """torch intra-op threads (0: torch's default, 2 on the project's machines)."""
     device: str = "cpu"
     """torch device of the timed updates: cpu, cuda or cuda:N (TF32 on CUDA, as the learner)."""
+    cuda_graphs: bool = False
+    """Time the SAC updates as CUDA graph replays (`mea learner --cuda-graphs`; a CUDA device only)."""
     consumers: int = 2
     """Consumer processes pulling each weights version."""
     versions: int = 20
@@ -79,6 +81,8 @@ class LearnerBenchConfig:
 
     def __post_init__(self) -> None:
         check_device(self.device, "--device")
+        if self.cuda_graphs and not self.device.startswith("cuda"):
+            raise ValueError(f"--cuda-graphs needs a CUDA --device, not {self.device}")
         if self.updates < 1:
             raise ValueError(f"--updates must be >= 1, got {self.updates}")
         for p in self.gasv2_presets:
@@ -171,27 +175,29 @@ def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
         preset, net, batch_size = variant_net(variant)
         lc, algo = LEARNER_PRESETS[preset], preset_algorithm(preset, SacConfig)
         torch.manual_seed(cfg.seed)
-        sac = RecurrentSAC(build_actor(net), build_critic(net), algo.sac, device)
+        sac = RecurrentSAC(build_actor(net), build_critic(net), algo.sac, device, cfg.cuda_graphs)
         # the learner's own call: floats per update on the CPU, statistics left on a GPU
         update = sac.update if device.type == "cpu" else sac.update_tensors
+        trim = algo.trim_batches and not cfg.cuda_graphs  # a graph replays one shape
+        warmup = 5 if cfg.cuda_graphs else 1  # the graph's eager warm-up updates and its capture
         sample_s, update_s = [], []
-        for i in range(cfg.updates + 1):
+        for i in range(cfg.updates + warmup):
             _synchronize(device)
             t0 = time.perf_counter()
-            sample = replay.sample(batch_size, rng, demo_fraction=lc.demo_fraction, trim=algo.trim_batches)
+            sample = replay.sample(batch_size, rng, demo_fraction=lc.demo_fraction, trim=trim)
             batch = to_batch(sample, device)
             t1 = time.perf_counter()
             update(batch)
             _synchronize(device)
             t2 = time.perf_counter()
-            if i:  # the first update warms up allocators and kernels
+            if i >= warmup:  # the first update warms up allocators and kernels
                 sample_s.append(t1 - t0)
                 update_s.append(t2 - t0)
         per_update = statistics.median(update_s)
         _log(f"{variant} on {device}: {per_update:.3f} s/update")
         rows.append({
             "variant": variant, "device": str(device), "group": net.group, "batch (episodes)": batch_size,
-            "critic": net.critic_input, "demo share": lc.demo_fraction, "trimmed": algo.trim_batches, "shared encoder": algo.sac.share_encoder,
+            "critic": net.critic_input, "demo share": lc.demo_fraction, "trimmed": trim, "CUDA graphs": cfg.cuda_graphs, "shared encoder": algo.sac.share_encoder,
             "params (actor + critic)": sum(p.numel() for m in (sac.actor, sac.critic) for p in m.parameters()),
             "s/update (median)": per_update, "s/update (min)": min(update_s), **_timing_columns(update_s),
             "updates/s": 1.0 / per_update, "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),

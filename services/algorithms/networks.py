@@ -222,6 +222,25 @@ class ImageEncoder(nn.Module):
         return self.net(x).flatten(1)
 
 
+def encode_real(encoder: nn.Module, images: Tensor, obs_mask: Tensor | None, skip_padding: bool) -> Tensor:
+    """``encoder`` over (B, T, C, H, W) images -> (B, T, E), zeros at the steps ``obs_mask`` marks as
+    padding. ``skip_padding`` leaves padded images out of the encoder (the CPU: less work); otherwise
+    every image goes through it and padding is zeroed after (a GPU: no host synchronisation to read
+    the mask and fixed shapes, the same values; padded images never reach a loss either way)."""
+    B, T = images.shape[:2]
+    if obs_mask is None:
+        return encoder(images.flatten(0, 1)).unflatten(0, (B, T))
+    if not skip_padding:
+        emb = encoder(images.flatten(0, 1)).unflatten(0, (B, T))
+        return emb * obs_mask.unsqueeze(-1).to(emb.dtype)
+    if bool(obs_mask.all()):
+        return encoder(images.flatten(0, 1)).unflatten(0, (B, T))
+    real = encoder(images[obs_mask])
+    emb = real.new_zeros(B, T, real.shape[-1])
+    emb[obs_mask] = real
+    return emb
+
+
 class PlainLSTM(nn.Module):
     """nn.LSTM (batch first, orthogonal weights, zero biases) with the (B, H) state convention."""
 
@@ -296,13 +315,7 @@ class _Recurrent(nn.Module):
         """e(o_t) (B, T, image_embed). With ``obs_mask`` (B, T) bool, only the real observations go
         through the encoder and padded steps get zeros: padding comes after an episode's last step,
         so with a causal LSTM and masked losses nothing real depends on it."""
-        B, T = images.shape[:2]
-        if obs_mask is None or bool(obs_mask.all()):
-            return self.encoder(images.flatten(0, 1)).unflatten(0, (B, T))
-        real = self.encoder(images[obs_mask])
-        emb = real.new_zeros(B, T, real.shape[-1])
-        emb[obs_mask] = real
-        return emb
+        return encode_real(self.encoder, images, obs_mask, skip_padding=images.device.type == "cpu")
 
     def recurrent(
         self,

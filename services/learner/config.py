@@ -143,6 +143,10 @@ class LearnerConfig:
         if not 0.0 <= self.demo_fraction <= 1.0:
             raise ValueError(f"demo_fraction must be in [0, 1], got {self.demo_fraction}")
         check_device(self.device, "--device")
+        if getattr(self.algorithm, "cuda_graphs", False) and not self.device.startswith("cuda"):
+            raise ValueError(
+                f"--cuda-graphs needs a CUDA learner (--device cuda), not --device {self.device}"
+            )
         if self.samples_per_insert <= 0 or self.min_steps < 0 or self.error_buffer < 0:
             raise ValueError("samples_per_insert must be > 0, min_steps and error_buffer >= 0")
 

@@ -49,10 +49,10 @@ OWN_FILES = ("agent.py", "losses.py", "algorithm.py", "trainer.py", "batch.py", 
 """The update loop's own modules: none of them may wait for the device between metric reads."""
 
 
-def filled_trainer(device: str = "cpu", episodes: int = 6, same_length: bool = False, **kw) -> Trainer:
+def filled_trainer(device: str = "cpu", episodes: int = 6, **kw) -> Trainer:
     trainer = build_trainer(tiny_learner_config(Path("unused"), ServiceConfig(), device=device, **kw))
     for k in range(episodes):
-        trainer.insert(learner_episode(k, T=10 if same_length else 10 + k % 3, demo=k == 0))
+        trainer.insert(learner_episode(k, T=10 + k % 3, demo=k == 0))
     return trainer
 
 
@@ -386,8 +386,8 @@ def test_prepare_device_leaves_the_cpu_precision_alone():
 @pytest.mark.cuda
 @pytest.mark.skipif(not CUDA, reason=f"CUDA is absent here (torch {torch.__version__})")
 def test_cuda_updates_between_metric_reads_never_synchronise_in_the_loops_own_code():
-    # equal lengths: no padding, so the encoders' masked path (its own synchronisations) stays out
-    trainer = filled_trainer("cuda", same_length=True, tensorboard_every=4)
+    # unequal lengths: padded batches, which a GPU's encoders take whole (no mask read back)
+    trainer = filled_trainer("cuda", tensorboard_every=4)
     assert trainer.metrics_every == 4 and trainer.agent.device.type == "cuda"
     assert torch.get_float32_matmul_precision() == "high" and torch.backends.cudnn.allow_tf32  # TF32
     assert trainer.step() is not None  # update 1 warms up cuDNN, cuBLAS and the allocators
@@ -403,7 +403,7 @@ def test_cuda_updates_between_metric_reads_never_synchronise_in_the_loops_own_co
     syncs = [(Path(w.filename).name, w.lineno) for w in caught if "synchronizing" in str(w.message)]
     print("host synchronisations in two updates (file, line):", sorted(set(syncs)))  # pytest -rP shows it
     # agent.py's lines also carry what its network calls and backward passes do; these call nothing
-    assert not [s for s in syncs if s[0] in ("trainer.py", "batch.py", "tensors.py")]
+    assert not [s for s in syncs if s[0] in ("trainer.py", "batch.py", "tensors.py", "networks.py")]
     info = trainer.step()  # update 4 reads the means of updates 1 to 4
     assert np.isfinite(info["critic_loss"]) and "alpha" in info
 
@@ -416,3 +416,65 @@ def test_the_update_benchmark_times_cuda_with_percentiles():
     rows = bench_updates(LearnerBenchConfig(variants=("cpu-small:c4",), updates=3, episodes=8, device="cuda"))
     (row,) = rows
     assert row["device"].startswith("cuda") and 0 < row["ms/update p50"] <= row["ms/update p99"]
+
+
+# ------------------------------------------------------------------------------------------------
+# CUDA graphs (--cuda-graphs)
+# ------------------------------------------------------------------------------------------------
+
+
+def test_cuda_graphs_are_refused_off_a_gpu_in_one_line_and_pad_every_batch_to_seq_len():
+    with pytest.raises(
+        ValueError, match=r"^--cuda-graphs needs a CUDA learner \(--device cuda\), not --device cpu$"
+    ):
+        tiny_learner_config(
+            Path("unused"), ServiceConfig(), algorithm=SacConfig(net=TINY_NET, cuda_graphs=True)
+        )
+    with pytest.raises(ValueError, match="CUDA graphs need a CUDA device"):
+        RecurrentSAC(build_actor(TINY_NET), build_critic(TINY_NET), SacSettings(), "cpu", cuda_graphs=True)
+    trainer = filled_trainer("cpu")  # episodes of 10-12 steps in a seq_len-20 replay
+    for graphs, want in ((False, 12), (True, trainer.replay.seq_len)):
+        algo = dataclasses.replace(trainer.config, cuda_graphs=graphs)
+        sample = algo.sample(trainer.replay, 4, np.random.default_rng(0), 0.0, False)
+        assert sample.seq_len == want, graphs
+
+
+def _twin_sacs(device: str) -> tuple[RecurrentSAC, RecurrentSAC]:
+    torch.manual_seed(0)
+    actor, critic = build_actor(TINY_NET), build_critic(TINY_NET)
+    twins = []
+    for graphs in (False, True):
+        a, c = actor.__class__(TINY_NET), critic.__class__(TINY_NET)
+        a.load_state_dict(actor.state_dict())
+        c.load_state_dict(critic.state_dict())
+        twins.append(RecurrentSAC(a, c, SacSettings(), device, cuda_graphs=graphs))
+    return twins[0], twins[1]
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(
+    not CUDA, reason=f"CUDA is absent here (torch {torch.__version__}); tools/gpu-check.sh runs it"
+)
+def test_graphed_updates_replay_one_capture_and_learn_as_the_eager_ones():
+    trainer = filled_trainer("cpu")
+    rng = np.random.default_rng(0)
+    samples = [trainer.replay.sample(4, rng, trim=False) for _ in range(9)]
+    eager, graphed = _twin_sacs("cuda")
+    with full_fp32():
+        for k, sample in enumerate(samples):
+            batch = to_batch(sample, "cuda")
+            torch.cuda.manual_seed(
+                100 + k
+            )  # the same noise for both (a replay draws at the generator's offset)
+            want = eager.update_tensors(batch)
+            torch.cuda.manual_seed(100 + k)
+            got = graphed.update_tensors(batch)
+            assert graphed.updates == eager.updates == k + 1
+            for name in ("critic_loss", "actor_loss", "alpha"):
+                assert float(got[name]) == pytest.approx(float(want[name]), rel=1e-4, abs=1e-6), (k, name)
+    graph = graphed._graphed
+    assert graph is not None and graph.enabled and graph.captures == 1  # 3 eager, then one graph replayed
+    for p, q in zip(eager.actor.parameters(), graphed.actor.parameters(), strict=True):
+        torch.testing.assert_close(q, p, rtol=1e-4, atol=1e-5)
+    for p, q in zip(eager.critic_target.parameters(), graphed.critic_target.parameters(), strict=True):
+        torch.testing.assert_close(q, p, rtol=1e-4, atol=1e-5)

@@ -14,7 +14,15 @@ import torch
 from torch import Tensor, nn
 
 from services.algorithms.groups import get_group, transform_actions, transform_images, transform_regular
-from services.algorithms.networks import PRESETS, Actor, Critic, NetConfig, build_actor, build_critic
+from services.algorithms.networks import (
+    PRESETS,
+    Actor,
+    Critic,
+    NetConfig,
+    build_actor,
+    build_critic,
+    encode_real,
+)
 
 pytestmark = pytest.mark.unit
 
@@ -261,3 +269,38 @@ def test_bad_input_shapes_are_rejected() -> None:
     actor = build_actor(NetConfig.preset("cpu-small"))
     with pytest.raises(ValueError, match="prev_actions"):
         actor(torch.zeros(1, 2, 2, 84, 84), torch.zeros(1, 3, 5))
+
+
+# ------------------------------------------------------------------------------------------------
+# padded steps: skipped by the encoder (CPU) or encoded and zeroed (a GPU), the same numbers
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preset", ["cpu-small", "paper"])
+def test_encoding_padding_and_zeroing_it_equals_leaving_it_out_values_and_gradients(preset):
+    actor, _ = nets(preset, "c4")
+    images, _, _ = inputs(seed=3, B=3, T=5)
+    lengths = torch.tensor([5, 2, 4])
+    obs_mask = torch.arange(5)[None] < lengths[:, None]  # episodes of 5, 2 and 4 observations
+    images = images * obs_mask[:, :, None, None, None]  # padding is zeros, as the replay pads
+    target = torch.randn(3, 5, actor.cfg.image_embed, generator=torch.Generator().manual_seed(4))
+
+    def run(skip_padding: bool) -> tuple[Tensor, list[Tensor]]:
+        actor.zero_grad(set_to_none=True)
+        emb = encode_real(actor.encoder, images, obs_mask, skip_padding=skip_padding)
+        (emb * target).sum().backward()
+        return emb.detach(), [p.grad.clone() for p in actor.encoder.parameters()]
+
+    skipped, skipped_grads = run(True)
+    dense, dense_grads = run(False)
+    assert float(skipped[~obs_mask].abs().max()) == 0.0 and float(dense[~obs_mask].abs().max()) == 0.0
+    assert float(skipped[obs_mask].abs().amax(-1).min()) > 0  # every real step is encoded, not zeroed
+    assert_close_tol(dense, skipped)
+    assert len(dense_grads) == len(skipped_grads) > 0
+    for got, want in zip(dense_grads, skipped_grads, strict=True):
+        assert_close_tol(got, want)
+    # without padding both paths are the plain encoder
+    full = torch.ones_like(obs_mask)
+    plain = encode_real(actor.encoder, images, None, skip_padding=True)
+    assert torch.equal(encode_real(actor.encoder, images, full, skip_padding=True), plain)
+    assert_close_tol(encode_real(actor.encoder, images, full, skip_padding=False), plain)

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.graphed import GraphedUpdate
 from services.algorithms.sac.losses import (
     ActionValues,
     Batch,
@@ -94,7 +95,12 @@ class RecurrentSAC:
     on ``device`` (the networks are moved there; batches must be there too)."""
 
     def __init__(
-        self, actor: nn.Module, critic: nn.Module, settings: SacSettings, device: torch.device | str = "cpu"
+        self,
+        actor: nn.Module,
+        critic: nn.Module,
+        settings: SacSettings,
+        device: torch.device | str = "cpu",
+        cuda_graphs: bool = False,
     ) -> None:
         self.s = settings
         self.device = torch.device(device)
@@ -111,10 +117,23 @@ class RecurrentSAC:
         # on CUDA torch's fused Adam (one kernel per step instead of several per parameter); the
         # same update rule, and the CPU keeps its default implementation
         fused = {"fused": True} if self.device.type == "cuda" else {}
+        if cuda_graphs:
+            fused["capturable"] = True  # Adam's step count on the device, read inside the graph
         self.actor_opt = torch.optim.Adam(self._actor_params, lr=settings.lr, **fused)
         self.critic_opt = torch.optim.Adam(self._critic_params, lr=settings.lr, **fused)
         self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=settings.alpha_lr, **fused)
         self.updates = 0
+        self._graphed = (
+            GraphedUpdate(
+                self._update,
+                self._host_settings,
+                [*self._actor_params, *self._critic_params, self.log_alpha],
+                self.device,
+                self._count_update,
+            )
+            if cuda_graphs
+            else None
+        )
 
     @property
     def alpha(self) -> Tensor:
@@ -129,6 +148,22 @@ class RecurrentSAC:
         return {k: float(v) for k, v in self.update_tensors(batch).items()}
 
     def update_tensors(self, batch: Batch) -> dict[str, Tensor | float]:
+        """``_update`` once, counted: eagerly, or as a CUDA graph replay (``cuda_graphs``)."""
+        if self._graphed is not None:
+            return self._graphed(batch)
+        out = self._update(batch)
+        self._count_update()
+        return out
+
+    def _count_update(self) -> None:
+        self.updates += 1
+
+    def _host_settings(self) -> tuple[float, bool]:
+        """What an update reads on the host besides its batch: the BC weight and whether the actor's
+        warm-up is over (a CUDA graph is captured per value)."""
+        return self.s.bc_weight_at(self.updates), self.updates >= self.s.actor_warmup_updates
+
+    def _update(self, batch: Batch) -> dict[str, Tensor | float]:
         """One update in the paper's order: the losses on one pass over the batch (``_forward``), then
         the critic step, the actor step (through the just-updated Q heads), the temperature step and
         the target critic; its statistics as 0-d tensors on the device (``bc_weight`` a float), never
@@ -171,7 +206,6 @@ class RecurrentSAC:
         if s.autotune_alpha and warm and not crr:  # crr's actor has no entropy term to tune
             _step(self.alpha_opt, a_loss, [self.log_alpha])
         soft_update(self.critic_target, self.critic, s.tau)
-        self.updates += 1
 
         out: dict[str, Tensor | float] = {
             "critic_loss": q_loss.detach(),
@@ -251,3 +285,16 @@ class RecurrentSAC:
         self.critic_opt.load_state_dict(d["critic_opt"])
         self.alpha_opt.load_state_dict(d["alpha_opt"])
         self.updates = int(d["updates"])
+        self._keep_capturable()
+
+    def _keep_capturable(self) -> None:
+        """A loaded optimiser state carries its writer's ``capturable``; this learner keeps its own (a
+        CUDA graph's Adam keeps its step count on the device, an eager one need not)."""
+        for opt in (self.actor_opt, self.critic_opt, self.alpha_opt):
+            capturable = bool(opt.defaults.get("capturable"))
+            for group in opt.param_groups:
+                group["capturable"] = capturable
+            if capturable:
+                for state in opt.state.values():
+                    if "step" in state:
+                        state["step"] = state["step"].to(self.device, torch.float32)

@@ -43,6 +43,8 @@ class SacConfig:
     """Policy images: voxel (EquiObs/MEA) or depth."""
     trim_batches: bool = True
     """Pad batches to their longest episode, not seq_len."""
+    cuda_graphs: bool = False
+    """Replay each update as a CUDA graph (a CUDA learner only; batches padded to seq_len)."""
 
     def __post_init__(self) -> None:
         if self.name not in GROUPS:
@@ -71,7 +73,7 @@ class SacConfig:
 
     def build(self, seed: int, device: torch.device) -> RecurrentSAC:
         """Actor and critic from torch's current generator (the trainer seeds it; ``seed`` unused)."""
-        return RecurrentSAC(build_actor(self.net), build_critic(self.net), self.sac, device)
+        return RecurrentSAC(build_actor(self.net), build_critic(self.net), self.sac, device, self.cuda_graphs)
 
     def replay(self, capacity: int, seq_len: int, seed: int) -> SequenceReplay:
         """Whole episodes of policy images, with the privileged state per step for a state critic."""
@@ -83,9 +85,10 @@ class SacConfig:
         self, replay: SequenceReplay, batch_size: int, rng: np.random.Generator, demo_fraction: float,
         successes_as_demos: bool,
     ) -> SequenceBatch:  # fmt: skip
-        """``batch_size`` whole episodes (``trim_batches``: padded to the longest of them)."""
+        """``batch_size`` whole episodes (``trim_batches``: padded to the longest of them; a CUDA graph
+        replays one shape, so with ``cuda_graphs`` always to seq_len)."""
         return replay.sample(batch_size, rng, demo_fraction=demo_fraction, successes_as_demos=successes_as_demos,
-                             trim=self.trim_batches)  # fmt: skip
+                             trim=self.trim_batches and not self.cuda_graphs)  # fmt: skip
 
     def to_batch(self, sample: SequenceBatch, device: torch.device) -> Batch:
         return to_batch(sample, device)
