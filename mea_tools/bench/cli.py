@@ -72,5 +72,9 @@ def main(argv: Sequence[str]) -> int:
     module_name, cls_name, text = BENCHES[name]
     module = importlib.import_module(module_name)
     cfg = config.cli(getattr(module, cls_name), args[1:], f"mea bench {name}", text)
-    module.run(cfg)
+    try:
+        module.run(cfg)
+    except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback (runs it started resume on a rerun)
+        print(f"mea bench {name}: interrupted", file=sys.stderr)
+        return 130
     return 0

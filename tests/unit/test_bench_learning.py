@@ -454,3 +454,14 @@ def test_runs_in_flight_never_share_a_listen_port(monkeypatch):
         assert (first, second) == (7001, 7002)
     with ports.hold() as again:  # released: free for the next run
         assert again == 7001
+
+
+def test_ctrl_c_ends_the_benchmark_in_one_line_with_status_130(tmp_path, monkeypatch, capsys):
+    from mea_tools.bench import cli
+
+    def interrupted(cfg):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(learning, "run", interrupted)
+    assert cli.main(["learning", "--out", str(tmp_path / "bench")]) == 130
+    assert capsys.readouterr().err.strip() == "mea bench learning: interrupted"
