@@ -18,8 +18,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")
 
-pytestmark = pytest.mark.skipif(not LINT_IMPORTS.exists(), reason="lint-imports (dev extra) not installed")
-
 
 def _copy_tree(dst: Path) -> None:
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
@@ -29,6 +27,7 @@ def _copy_tree(dst: Path) -> None:
 
 
 def _lint(tree: Path) -> subprocess.CompletedProcess[str]:
+    assert LINT_IMPORTS.exists(), f"{LINT_IMPORTS} missing: install the dev extra (pip install -e '.[dev]')"
     # PYTHONPATH puts the copy ahead of the editable install, so grimp reads the planted files.
     env = {**os.environ, "PYTHONPATH": str(tree)}
     return subprocess.run(
