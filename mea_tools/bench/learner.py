@@ -173,18 +173,18 @@ def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
     rows = []
     for variant in cfg.variants:
         preset, net, batch_size = variant_net(variant)
-        lc, algo = LEARNER_PRESETS[preset], preset_algorithm(preset, SacConfig)
+        lc = LEARNER_PRESETS[preset]
+        algo = dataclasses.replace(preset_algorithm(preset, SacConfig), cuda_graphs=cfg.cuda_graphs)
         torch.manual_seed(cfg.seed)
-        sac = RecurrentSAC(build_actor(net), build_critic(net), algo.sac, device, cfg.cuda_graphs)
+        sac = RecurrentSAC(build_actor(net), build_critic(net), algo.sac, device, algo.cuda_graphs)
         # the learner's own call: floats per update on the CPU, statistics left on a GPU
         update = sac.update if device.type == "cpu" else sac.update_tensors
-        trim = algo.trim_batches and not cfg.cuda_graphs  # a graph replays one shape
         warmup = 5 if cfg.cuda_graphs else 1  # the graph's eager warm-up updates and its capture
         sample_s, update_s = [], []
         for i in range(cfg.updates + warmup):
             _synchronize(device)
             t0 = time.perf_counter()
-            sample = replay.sample(batch_size, rng, demo_fraction=lc.demo_fraction, trim=trim)
+            sample = algo.sample(replay, batch_size, rng, lc.demo_fraction, successes_as_demos=False)
             batch = to_batch(sample, device)
             t1 = time.perf_counter()
             update(batch)
@@ -197,7 +197,7 @@ def bench_updates(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
         _log(f"{variant} on {device}: {per_update:.3f} s/update")
         rows.append({
             "variant": variant, "device": str(device), "group": net.group, "batch (episodes)": batch_size,
-            "critic": net.critic_input, "demo share": lc.demo_fraction, "trimmed": trim, "CUDA graphs": cfg.cuda_graphs, "shared encoder": algo.sac.share_encoder,
+            "critic": net.critic_input, "demo share": lc.demo_fraction, "trimmed": algo.trims_batches, "CUDA graphs": algo.cuda_graphs, "shared encoder": algo.sac.share_encoder,
             "params (actor + critic)": sum(p.numel() for m in (sac.actor, sac.critic) for p in m.parameters()),
             "s/update (median)": per_update, "s/update (min)": min(update_s), **_timing_columns(update_s),
             "updates/s": 1.0 / per_update, "sample + tensors s": statistics.median(sample_s), "timed updates": len(update_s),

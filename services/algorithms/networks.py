@@ -228,17 +228,13 @@ def encode_real(encoder: nn.Module, images: Tensor, obs_mask: Tensor | None, ski
     every image goes through it and padding is zeroed after (a GPU: no host synchronisation to read
     the mask and fixed shapes, the same values; padded images never reach a loss either way)."""
     B, T = images.shape[:2]
-    if obs_mask is None:
-        return encoder(images.flatten(0, 1)).unflatten(0, (B, T))
-    if not skip_padding:
-        emb = encoder(images.flatten(0, 1)).unflatten(0, (B, T))
-        return emb * obs_mask.unsqueeze(-1).to(emb.dtype)
-    if bool(obs_mask.all()):
-        return encoder(images.flatten(0, 1)).unflatten(0, (B, T))
-    real = encoder(images[obs_mask])
-    emb = real.new_zeros(B, T, real.shape[-1])
-    emb[obs_mask] = real
-    return emb
+    if skip_padding and obs_mask is not None and not bool(obs_mask.all()):
+        real = encoder(images[obs_mask])
+        emb = real.new_zeros(B, T, real.shape[-1])
+        emb[obs_mask] = real
+        return emb
+    emb = encoder(images.flatten(0, 1)).unflatten(0, (B, T))
+    return emb if obs_mask is None or skip_padding else emb * obs_mask.unsqueeze(-1).to(emb.dtype)
 
 
 class PlainLSTM(nn.Module):

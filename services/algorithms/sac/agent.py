@@ -173,7 +173,7 @@ class RecurrentSAC:
         reported (which of them steers the actor). With a shared encoder the BC term also trains the
         encoder, beside the critic loss (a sparse-reward critic alone shapes it too slowly)."""
         s, alpha = self.s, self.alpha
-        w = s.bc_weight_at(self.updates)
+        w, warm = self._host_settings()
         fwd = self._forward(batch, alpha)
 
         # losses: J_Q, and J_bc (where on) with its gradient on the actor, taken while the graph it
@@ -188,7 +188,6 @@ class RecurrentSAC:
 
         # actor step: J_pi through the just-updated Q heads, plus the BC gradient; during a critic
         # warm-up the BC gradient alone (J_pi's gradient still measured)
-        warm = self.updates >= s.actor_warmup_updates
         crr = s.actor_objective == "crr"
         if crr:
             assert fwd.values is not None  # _forward computes them for crr

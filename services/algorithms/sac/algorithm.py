@@ -81,14 +81,19 @@ class SacConfig:
         return SequenceReplay(capacity, image_size=self.net.image_size, seq_len=seq_len,
                               channels=self.net.in_channels, seed=seed, state_dim=state_dim)  # fmt: skip
 
+    @property
+    def trims_batches(self) -> bool:
+        """Whether batches are padded to their longest episode (``trim_batches``); never with
+        ``cuda_graphs``: a CUDA graph replays one shape, so batches are padded to seq_len."""
+        return self.trim_batches and not self.cuda_graphs
+
     def sample(
         self, replay: SequenceReplay, batch_size: int, rng: np.random.Generator, demo_fraction: float,
         successes_as_demos: bool,
     ) -> SequenceBatch:  # fmt: skip
-        """``batch_size`` whole episodes (``trim_batches``: padded to the longest of them; a CUDA graph
-        replays one shape, so with ``cuda_graphs`` always to seq_len)."""
+        """``batch_size`` whole episodes, padded as ``trims_batches`` says."""
         return replay.sample(batch_size, rng, demo_fraction=demo_fraction, successes_as_demos=successes_as_demos,
-                             trim=self.trim_batches and not self.cuda_graphs)  # fmt: skip
+                             trim=self.trims_batches)  # fmt: skip
 
     def to_batch(self, sample: SequenceBatch, device: torch.device) -> Batch:
         return to_batch(sample, device)
