@@ -53,7 +53,9 @@ class NetConfig:
     image_embed: int = 128
     """Channels of the image embedding."""
     action_embed: int = 16
-    """Channels of each action embedding."""
+    """Channels of the previous action's embedding (LSTM input)."""
+    q_action_embed: int = 144
+    """Channels of the critic's embedding of the action it rates (public Equi-RSAC: 144)."""
     lstm_hidden: int = 128
     """Channels of h and c."""
     mlp_hidden: tuple[int, ...] = (128, 128)
@@ -83,6 +85,7 @@ class NetConfig:
             "final_kernel",
             "image_embed",
             "action_embed",
+            "q_action_embed",
             "lstm_hidden",
         ):
             if getattr(self, name) < 1:
@@ -96,7 +99,7 @@ class NetConfig:
         self.spatial_sizes()  # raises on a bad grid
         G = self.channels_per_field
         if self.group != "none":
-            for name in ("image_embed", "action_embed", "lstm_hidden"):
+            for name in ("image_embed", "action_embed", "q_action_embed", "lstm_hidden"):
                 if getattr(self, name) % G:
                     raise ValueError(f"{name}={getattr(self, name)} is not divisible by |{self.group}| = {G}")
             if any(w % G for w in self.mlp_hidden):
@@ -161,12 +164,13 @@ PRESETS: dict[str, NetConfig] = {
     # Equi-RSAC widths (tasks-and-baselines.md section 2).
     "paper": NetConfig(),
     # For 2 CPU cores: the same 84x84 geometry and depth; encoder fields halved (C4: 16-32 channels,
-    # D4: 32-64), image embedding, LSTM and MLPs 128 -> 64, action embeddings 16 -> 8. Every width is
+    # D4: 32-64), image embedding, LSTM and MLPs 128 -> 64, action embeddings 16 -> 8 (the critic's 144 -> 8). Every width is
     # divisible by 8, so the preset works for C4 and D4 alike.
     "cpu-small": NetConfig(
         encoder=((4, 8, 4), (8, 4, 2), (8, 3, 1), (8, 3, 1), (8, 3, 1)),
         image_embed=64,
         action_embed=8,
+        q_action_embed=8,
         lstm_hidden=64,
         mlp_hidden=(64, 64),
     ),
@@ -251,10 +255,13 @@ class PlainLSTM(nn.Module):
         return out, (h[0], c[0])
 
 
-def _action_embed(cfg: NetConfig, group: Group | None) -> nn.Module:
+def _action_embed(cfg: NetConfig, group: Group | None, channels: int | None = None) -> nn.Module:
+    """Linear (equivariant: lift to regular fields) + ReLU of an action into ``channels``
+    (``cfg.action_embed`` unless given)."""
+    channels = cfg.action_embed if channels is None else channels
     if group is None:
-        return nn.Sequential(_plain_init(nn.Linear(ACTION_DIM, cfg.action_embed), _RELU_GAIN), nn.ReLU())
-    return nn.Sequential(ActionLift(group, cfg.action_embed // group.order), nn.ReLU())
+        return nn.Sequential(_plain_init(nn.Linear(ACTION_DIM, channels), _RELU_GAIN), nn.ReLU())
+    return nn.Sequential(ActionLift(group, channels // group.order), nn.ReLU())
 
 
 def _lstm(cfg: NetConfig, group: Group | None) -> nn.Module:
@@ -383,8 +390,10 @@ class Critic(_Recurrent):
     def __init__(self, cfg: NetConfig) -> None:
         super().__init__(cfg)
         self.feature_dim = cfg.lstm_hidden + cfg.image_embed
-        self.q_action_embed = _action_embed(cfg, self.group)
-        width_in = self.feature_dim + cfg.action_embed
+        # the action Q rates gets its own, wide embedding: with a few ReLU features of it, Q can
+        # barely tell one move from another (the public critic's 144 channels; docs/results.md)
+        self.q_action_embed = _action_embed(cfg, self.group, cfg.q_action_embed)
+        width_in = self.feature_dim + cfg.q_action_embed
         out = _mlp_out(cfg, width_in)
         ln = cfg.critic_layer_norm
         self.q1 = nn.Sequential(_mlp(cfg, self.group, width_in, ln), _invariant_head(cfg, self.group, out, 1))

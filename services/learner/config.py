@@ -161,7 +161,9 @@ class LearnerConfig:
 # GASv2's prefixed (``PRESETS``); `mea run --learner-preset` names a row of its variant's table.
 _CPU_SMALL_SAC = SacConfig(
     net=dataclasses.replace(NET_PRESETS["cpu-small"], critic_layer_norm=True, actor_prev_action=False),
-    sac=SacSettings(init_alpha=0.01, bc_weight=2.0, share_encoder=True, return_bound=True),
+    sac=SacSettings(
+        init_alpha=0.01, bc_weight=2.0, share_encoder=True, return_bound=True, alpha_loss="log_alpha"
+    ),
 )
 SAC_PRESETS: dict[str, LearnerConfig] = {
     "paper": LearnerConfig(),

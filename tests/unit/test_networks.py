@@ -229,6 +229,8 @@ def test_paper_preset_is_the_reference_geometry() -> None:
     assert cfg == NetConfig()
     assert cfg.spatial_sizes() == [20, 9, 7, 5, 3, 1]
     assert (cfg.image_embed, cfg.action_embed, cfg.lstm_hidden, cfg.mlp_hidden) == (128, 16, 128, (128, 128))
+    # the public critic embeds the action it rates into 144 channels (tasks-and-baselines.md section 2)
+    assert cfg.q_action_embed == 144 and build_critic(cfg).q1[0][0].in_fields * 4 == 128 + 128 + 144
 
 
 @pytest.mark.parametrize("name", sorted(PRESETS))
@@ -248,6 +250,8 @@ def test_presets_round_trip_through_json(name: str, group: str) -> None:
         ({"image_size": 80}, "not divisible by stride"),
         ({"image_embed": 102}, "image_embed=102 is not divisible"),
         ({"group": "d4", "action_embed": 12}, "action_embed=12 is not divisible"),
+        ({"q_action_embed": 18}, "q_action_embed=18 is not divisible"),
+        ({"q_action_embed": 0}, "q_action_embed must be positive"),
         ({"group": "d4", "mlp_hidden": (128, 100)}, "mlp_hidden"),
         ({"lstm_hidden": 0}, "lstm_hidden must be positive"),
         ({"final_kernel": 30}, "larger than"),

@@ -225,6 +225,25 @@ def test_alpha_loss_pushes_toward_target_entropy():
     assert g_high.item() == pytest.approx(15.0) and g_low.item() == pytest.approx(-5.0)
 
 
+@pytest.mark.parametrize("log_alpha_value", [math.log(0.1), math.log(3e-4)])
+def test_alpha_form_scales_the_gradient_by_alpha(log_alpha_value):
+    # the public code's form: the same sign as the log-alpha form, the gradient times alpha, so
+    # under Adam alpha falls more slowly as it gets small
+    mask = torch.ones(2, 4)
+    log_probs = torch.linspace(-9.0, -1.0, 8).reshape(2, 4)
+    grads = {}
+    for form in ("log_alpha", "alpha"):
+        log_alpha = torch.tensor(log_alpha_value, requires_grad=True)
+        (grads[form],) = torch.autograd.grad(alpha_loss(log_alpha, log_probs, mask, -5.0, form), log_alpha)
+    assert grads["log_alpha"].item() == pytest.approx(10.0)  # -(mean log pi + target) = -(-5 - 5)
+    assert grads["alpha"].item() == pytest.approx(10.0 * math.exp(log_alpha_value))
+
+
+def test_alpha_loss_form_is_checked():
+    with pytest.raises(ValueError, match="alpha_loss must be one of"):
+        SacSettings(alpha_loss="exp")
+
+
 def test_soft_update_is_a_lerp():
     check_lerp_update(soft_update, 0.25, seed=0)
 

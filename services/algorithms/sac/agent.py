@@ -201,7 +201,7 @@ class RecurrentSAC:
 
         # temperature step, then the target critic
         log_probs = fwd.policy.log_probs[:, :-1]
-        a_loss = alpha_loss(self.log_alpha, log_probs, batch.mask, s.target_entropy)
+        a_loss = alpha_loss(self.log_alpha, log_probs, batch.mask, s.target_entropy, s.alpha_loss)
         if s.autotune_alpha and warm and not crr:  # crr's actor has no entropy term to tune
             _step(self.alpha_opt, a_loss, [self.log_alpha])
         soft_update(self.critic_target, self.critic, s.tau)

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 ACTOR_OBJECTIVES = ("sac", "crr")
+ALPHA_LOSSES = ("alpha", "log_alpha")
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,11 @@ class SacSettings:
     """Target entropy (-action_dim)."""
     autotune_alpha: bool = True
     """Tune alpha to the target entropy."""
+    # the same fixed point, different speeds under Adam: "alpha" (the public Equi-RSAC code, CleanRL)
+    # scales log alpha's gradient by alpha, so alpha falls about 2.5x slower per update than with
+    # "log_alpha" (Stable-Baselines3), whose gradient does not depend on alpha
+    alpha_loss: str = "alpha"
+    """Temperature loss: alpha or log_alpha times -(log pi + target entropy)."""
     bc_weight: float = 0.0
     """Weight of a BC term in the actor loss (0: off)."""
     n_step: int = 1
@@ -64,6 +70,8 @@ class SacSettings:
             raise ValueError(
                 f"actor_objective must be one of {ACTOR_OBJECTIVES}, not {self.actor_objective!r}"
             )
+        if self.alpha_loss not in ALPHA_LOSSES:
+            raise ValueError(f"alpha_loss must be one of {ALPHA_LOSSES}, not {self.alpha_loss!r}")
         if self.crr_beta < 0:
             raise ValueError(f"crr_beta must be >= 0, got {self.crr_beta}")
         if self.actor_warmup_updates < 0:

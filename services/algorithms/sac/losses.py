@@ -254,8 +254,12 @@ def critique_demos(
                             masked_mean(values.advantage, demo))  # fmt: skip
 
 
-def alpha_loss(log_alpha: Tensor, log_probs: Tensor, mask: Tensor, target_entropy: float) -> Tensor:
-    return -log_alpha * masked_mean(log_probs.detach() + target_entropy, mask)
+def alpha_loss(
+    log_alpha: Tensor, log_probs: Tensor, mask: Tensor, target_entropy: float, form: str = "log_alpha"
+) -> Tensor:
+    """-c (log pi + target entropy), c = log alpha (``form`` "log_alpha") or alpha ("alpha")."""
+    c = log_alpha.exp() if form == "alpha" else log_alpha
+    return -c * masked_mean(log_probs.detach() + target_entropy, mask)
 
 
 def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
