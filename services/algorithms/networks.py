@@ -53,9 +53,9 @@ class NetConfig:
     image_embed: int = 128
     """Channels of the image embedding."""
     action_embed: int = 16
-    """Channels of the previous action's embedding (LSTM input)."""
+    """Channels of a_{t-1}'s embedding (LSTM input)."""
     q_action_embed: int = 144
-    """Channels of the critic's embedding of the action it rates (public Equi-RSAC: 144)."""
+    """Channels of Q's action embedding (public code: 144)."""
     lstm_hidden: int = 128
     """Channels of h and c."""
     mlp_hidden: tuple[int, ...] = (128, 128)

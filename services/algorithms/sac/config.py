@@ -29,7 +29,7 @@ class SacSettings:
     # scales log alpha's gradient by alpha, so alpha falls about 2.5x slower per update than with
     # "log_alpha" (Stable-Baselines3), whose gradient does not depend on alpha
     alpha_loss: str = "alpha"
-    """Temperature loss: alpha or log_alpha times -(log pi + target entropy)."""
+    """Temperature loss: -c (log pi + target), c alpha or log_alpha."""
     bc_weight: float = 0.0
     """Weight of a BC term in the actor loss (0: off)."""
     n_step: int = 1
