@@ -20,6 +20,7 @@ from services.common.bus.zenoh_derive import check_run_file
 from services.learner import init_actor
 from services.learner.config import check_device, learner_presets, preset_name
 from services.tasks import TASK_CLASSES
+from services.tasks.env import GRIPPER_STARTS
 from services.variants import VARIANTS, check_task
 
 SERVICE_ORDER = ("learner", "augmenter", "evaluator", "actor")
@@ -159,6 +160,9 @@ class RunConfig:
     success_rotations: int | None = None
     """Rotated copies of each demo and success; None: the preset's."""
 
+    gripper_start: str = "random"
+    """Gripper at reset: random (MEA's premise) or fixed (public Equi-RSAC: centre, yaw 0)."""
+
     def resolved_success_rotations(self) -> int:
         """``success_rotations``, else the learner preset's default: the CPU recipe clones its few
         successes, and BC of 2 Block Pull demos reached 0.23-0.33 with 64 rotated copies against
@@ -197,6 +201,12 @@ class RunConfig:
             raise ValueError("recording_segment_bytes, _seconds and recording_max_bytes must be >= 0")
         if self.success_rotations is not None and self.success_rotations < 0:
             raise ValueError("success_rotations must be >= 0")
+        if self.gripper_start not in GRIPPER_STARTS:
+            raise ValueError(f"gripper_start must be one of {GRIPPER_STARTS}, not {self.gripper_start!r}")
+        if self.gripper_start != "random" and self.task in DSA_TASKS:
+            raise ValueError(
+                f"gripper_start {self.gripper_start!r} is for the manipulation tasks, not {self.task}"
+            )
         if self.variant not in VARIANTS:
             raise ValueError(f"variant must be one of {tuple(VARIANTS)}, not {self.variant!r}")
         if self.mea_on not in MEA_ON:

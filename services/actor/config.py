@@ -9,6 +9,7 @@ from proto.seeds import ACTOR_SEED_STRIDE, RESTART_SEED_STRIDE
 from services.common.config import ServiceConfig
 from services.tasks import EXPERT_STYLES, TASK_CLASSES, EnvSettings
 from services.tasks.camera import CameraSettings
+from services.tasks.env import GRIPPER_STARTS
 
 POLICIES = ("expert", "random", "learned")
 EXPERTS = ("observable", "privileged")
@@ -44,6 +45,8 @@ class ActorConfig:
     """Also record the baseline depth image (the `equirsac` variant's observation)."""
     points_per_segment: int = 256
     """Points per segment in each observation."""
+    gripper_start: str = "random"
+    """Gripper pose at reset: random or fixed (the public Equi-RSAC start)."""
     max_demo_attempts: int = 4
     """Expert attempts per requested demonstration before giving up (only successes count)."""
     incarnation: int = 0
@@ -66,6 +69,8 @@ class ActorConfig:
     def __post_init__(self) -> None:
         if self.task not in TASK_CLASSES:
             raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
+        if self.gripper_start not in GRIPPER_STARTS:
+            raise ValueError(f"gripper_start must be one of {GRIPPER_STARTS}, not {self.gripper_start!r}")
         if self.incarnation < 0 or self.random_steps < 0:
             raise ValueError("incarnation and random_steps must be >= 0")
         if not 1 <= self.envs <= MAX_ENVS:
@@ -88,7 +93,9 @@ class ActorConfig:
 
     def env_settings(self) -> EnvSettings:
         return EnvSettings(
-            depth_image=self.depth_image, camera=CameraSettings(points_per_segment=self.points_per_segment)
+            depth_image=self.depth_image,
+            gripper_start=self.gripper_start,
+            camera=CameraSettings(points_per_segment=self.points_per_segment),
         )
 
 

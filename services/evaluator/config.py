@@ -10,6 +10,7 @@ from services.common.config import ServiceConfig
 from services.evaluator.core.schedule import Schedule
 from services.tasks import TASK_CLASSES, EnvSettings
 from services.tasks.camera import CameraSettings
+from services.tasks.env import GRIPPER_STARTS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,6 +33,8 @@ class EvaluatorConfig:
     """Episodes of an evaluation at the budget (0: --episodes)."""
     points_per_segment: int = 256
     """Points per segment in each observation (as the actors')."""
+    gripper_start: str = "random"
+    """Gripper pose at reset: random or fixed (the public Equi-RSAC start)."""
     depth_image: bool = False
     """Render the depth image, which `depth` policies (the equirsac variant) observe."""
     max_evaluations: int = 0
@@ -56,6 +59,8 @@ class EvaluatorConfig:
     def __post_init__(self) -> None:
         if self.task not in TASK_CLASSES:
             raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
+        if self.gripper_start not in GRIPPER_STARTS:
+            raise ValueError(f"gripper_start must be one of {GRIPPER_STARTS}, not {self.gripper_start!r}")
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
         if min(self.every_env_steps, self.final_env_steps, self.final_episodes, self.max_evaluations,
@@ -83,7 +88,9 @@ class EvaluatorConfig:
 
     def env_settings(self) -> EnvSettings:
         return EnvSettings(
-            depth_image=self.depth_image, camera=CameraSettings(points_per_segment=self.points_per_segment)
+            depth_image=self.depth_image,
+            gripper_start=self.gripper_start,
+            camera=CameraSettings(points_per_segment=self.points_per_segment),
         )
 
     @property

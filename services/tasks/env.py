@@ -41,6 +41,11 @@ SHOWN = {"floor": (0.82, 0.82, 0.78, 1.0), "arm": (0.72, 0.74, 0.8, 1.0)}
 """Their colours in a third-person picture (``render_scene``)."""
 
 SETTLE_STEPS = 10
+GRIPPER_STARTS = ("random", "fixed")
+"""Gripper poses at reset: ``random`` (each task's ``initial_gripper``: MEA's premise of a random
+initial state) or ``fixed`` at ``FIXED_GRIPPER`` (the public Equi-RSAC environments' start)."""
+FIXED_GRIPPER = ((0.5, 0.0), 0.0)
+"""Pivot x, y (m) and yaw (rad) of the ``fixed`` start: the workspace centre, yaw 0."""
 """Physics steps the world rests after the arm is placed (``reset``, ``place_state``): objects
 settle on the floor before the first observation."""
 
@@ -63,6 +68,8 @@ class EnvSettings:
     """Time limit (steps); reaching it truncates the episode."""
     initial_tip_height: float = 0.2
     """Finger-tip height (m) at reset: fixed, so MEA knows the initial gripper height."""
+    gripper_start: str = "random"
+    """Gripper x, y and yaw at reset: random or fixed (GRIPPER_STARTS)."""
     depth_image: bool = False
     """Also render the baseline observation (public Equi-RSAC top-down depth image)."""
     depth_image_size: int = 84
@@ -71,6 +78,10 @@ class EnvSettings:
     """Camera rig and point sampling."""
     control: ControlSettings = field(default_factory=ControlSettings)
     """Arm control."""
+
+    def __post_init__(self) -> None:
+        if self.gripper_start not in GRIPPER_STARTS:
+            raise ValueError(f"gripper_start must be one of {GRIPPER_STARTS}, not {self.gripper_start!r}")
 
 
 @dataclass
@@ -214,7 +225,9 @@ class ManipulationEnv:
         self.seed, self.t = int(seed), 0
         rng = np.random.default_rng(self.seed)
         self.task.reset(rng)
-        xy, yaw = self.task.initial_gripper(rng)
+        xy, yaw = self.task.initial_gripper(rng)  # drawn either way: the same rng stream per seed
+        if self.settings.gripper_start == "fixed":
+            xy, yaw = np.array(FIXED_GRIPPER[0]), FIXED_GRIPPER[1]
         z = self.settings.initial_tip_height + self.robot.tip_drop
         self.robot.reset(np.array([xy[0], xy[1], z]), yaw, jaw=1.0)
         self._rest()

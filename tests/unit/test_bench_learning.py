@@ -308,6 +308,17 @@ def test_public80_trains_equirsac_and_equiobs_on_80_demos_and_1000_random_steps_
     assert settings(LearningBenchConfig(protocol="public15", variants=("equiobs",), seeds=5)).seeds == 5
 
 
+def test_fixed_protocols_are_the_same_calibrations_on_the_public_start(tmp_path):
+    for name in ("public15", "public80"):
+        cfg, fixed_cfg = (LearningBenchConfig(out=tmp_path, protocol=p) for p in (name, f"{name}-fixed"))
+        s, fixed = settings(cfg), settings(fixed_cfg)
+        assert dataclasses.replace(fixed.protocol, gripper_start="random") == s.protocol
+        plain = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, "equiobs", 0, s), "mea run", "")
+        ours = config.parse(RunConfig, RUN_PRESETS, run_args(fixed_cfg, "equiobs", 0, fixed), "mea run", "")
+        assert (plain.gripper_start, ours.gripper_start) == ("random", "fixed")
+        assert dataclasses.replace(ours, gripper_start="random", run_dir=plain.run_dir) == plain
+
+
 @pytest.mark.parametrize(
     ("options", "says"),
     [

@@ -272,3 +272,15 @@ def test_a_run_that_connects_to_another_hosts_router_runs_learned_actors_and_bin
     cfg = actor_cfg(remote, tmp_path)
     assert cfg.policy == "learned" and cfg.service.metrics_addr == "0.0.0.0"
     assert cfg.service.zenoh.connect == (remote.listen,)  # services still join the run's own router
+
+
+def test_the_gripper_start_reaches_every_env_of_the_run_and_is_refused_where_it_means_nothing(tmp_path):
+    for start in ("random", "fixed"):
+        run = RunConfig(task="block_pull", gripper_start=start, metrics_port=0)
+        for service in ("actor", "evaluator"):
+            cfg = config_for(run, tmp_path, service, 0)
+            assert cfg.gripper_start == start and cfg.env_settings().gripper_start == start
+    with pytest.raises(ValueError, match="gripper_start must be one of"):
+        RunConfig(gripper_start="centre")
+    with pytest.raises(ValueError, match="for the manipulation tasks"):
+        RunConfig(task="surgical_grasp_any", variant="gasv2", gripper_start="fixed")

@@ -8,7 +8,8 @@ import pytest
 
 from proto.actions import DELTA_XYZ
 from services.observation.projection import ProjectionSpec, project
-from services.tasks import GENERAL_TASKS, make_env
+from services.tasks import GENERAL_TASKS, EnvSettings, make_env
+from services.tasks.env import FIXED_GRIPPER
 from services.tasks.prior import measure, summarise
 from tests.helpers.env_asserts import refused_actions_change_nothing
 
@@ -128,3 +129,28 @@ def test_a_non_finite_action_is_refused_without_touching_the_env(env, bad):
 
     reference, again = refused_actions_change_nothing(env, ok, bad, state)
     np.testing.assert_array_equal(again.points, reference.points)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("task", GENERAL_TASKS)
+def test_fixed_gripper_start_is_the_public_pose_over_the_same_layout(task):
+    random_env, fixed_env = make_env(task), make_env(task, EnvSettings(gripper_start="fixed"))
+    try:
+        starts = []
+        for seed in (3, 4):
+            drawn, fixed = random_env.reset(seed), fixed_env.reset(seed)
+            # the scene the seed draws is the same; only the gripper's x, y and yaw differ
+            np.testing.assert_allclose(fixed.object_poses, drawn.object_poses, atol=1e-4)
+            (x, y), yaw = FIXED_GRIPPER
+            np.testing.assert_allclose(fixed.gripper_pose[[0, 1, 3]], [x, y, yaw], atol=2e-3)
+            assert abs(fixed.gripper_pose[2] - drawn.gripper_pose[2]) < 2e-3
+            starts.append(drawn.gripper_pose)
+        assert not np.allclose(starts[0][[0, 1, 3]], [0.5, 0.0, 0.0], atol=0.01)  # random starts differ
+    finally:
+        random_env.close()
+        fixed_env.close()
+
+
+def test_an_unknown_gripper_start_is_refused():
+    with pytest.raises(ValueError, match="gripper_start must be one of"):
+        EnvSettings(gripper_start="centre")
