@@ -29,6 +29,7 @@ from services.observation.depth_image import policy_images
 from services.observation.projection import segment_policy_images
 from services.tasks import TASK_CLASSES, EnvSettings, make_env
 from services.tasks.camera import scene_image
+from services.tasks.env import GRIPPER_STARTS
 
 PROG = "mea play"
 
@@ -84,14 +85,16 @@ def _key(run_dir: Path | None) -> bytes | None:
     return run_key.load(run_dir / run_key.FILE_NAME)
 
 
-def _run_task(run_dir: Path | None) -> str:
+def _run_setting(run_dir: Path | None, name: str, default: str) -> str:
+    """Setting ``name`` of the run's config.json (``default`` outside a run or where it has none)."""
     if run_dir is None:
-        return ""
+        return default
     try:
         saved = json.loads((run_dir / "config.json").read_text())
     except (OSError, ValueError):
-        return ""
-    return saved.get("task", "") if isinstance(saved, dict) else ""
+        return default
+    value = saved.get(name, default) if isinstance(saved, dict) else default
+    return value if isinstance(value, str) else default
 
 
 def _env_steps(run_dir: Path | None, version: int) -> int:
@@ -113,7 +116,7 @@ def play_policy(a: PlayArgs) -> str:
         blob = weights_file.read(path, _key(run_dir))
     except weights_file.WeightsFileError as exc:
         raise ValueError(str(exc)) from None
-    task = a.task or _run_task(run_dir)
+    task = a.task or _run_setting(run_dir, "task", "")
     if task not in TASK_CLASSES:
         raise ValueError(f"--task must be one of {', '.join(TASK_CLASSES)} (a weights file outside a run "
                          f"directory names none), not {task!r}")  # fmt: skip
@@ -129,7 +132,11 @@ def play_policy(a: PlayArgs) -> str:
         raise ValueError(f"{path}: the weights do not load for {task}: {exc}") from None
     steps = _env_steps(run_dir, blob.version)
     title = f"v{blob.version}" + ("" if steps < 0 else f" at {steps:,} env steps")
-    env = make_env(task, EnvSettings(depth_image=observation == "depth"))
+    # the run's own start pose (a --gripper-start fixed run is filmed from the public start)
+    start = _run_setting(run_dir, "gripper_start", "random")
+    if start not in GRIPPER_STARTS:
+        raise ValueError(f"{run_dir}/config.json: gripper_start must be one of {GRIPPER_STARTS}, not {start!r}")
+    env = make_env(task, EnvSettings(depth_image=observation == "depth", gripper_start=start))
     try:
         film = Film(a.episodes, a.size, title)
         seeds = range(a.seed, a.seed + a.episodes)

@@ -6,6 +6,7 @@ line, exit code 2, nothing written."""
 from __future__ import annotations
 
 import json
+import shutil
 import time
 
 import imageio.v2 as imageio
@@ -90,6 +91,27 @@ def test_a_runs_policy_renders_one_frame_per_observation(tmp_path, capsys, blob)
     assert f"{len(frames)} frames" in stdout
 
 
+@pytest.mark.timeout(300)
+def test_a_fixed_start_run_is_filmed_from_the_public_start(tmp_path, capsys, blob, monkeypatch):
+    import services.play
+
+    starts = []
+
+    def make_env(task, settings):  # the real env; the settings play asked for are kept
+        starts.append(settings.gripper_start)
+        return real_make_env(task, settings)
+
+    real_make_env = services.play.make_env
+    monkeypatch.setattr(services.play, "make_env", make_env)
+    run = _run_dir(tmp_path, blob)
+    for start in ("fixed", "random"):
+        (run / "config.json").write_text(json.dumps({"task": "block_pull", "gripper_start": start}))
+        out = tmp_path / f"{start}.mp4"
+        code, _, err = play(capsys, run, "--episodes", 1, "--size", SIZE, "--out", out)
+        assert code == 0 and err == "" and out.exists(), err
+    assert starts == ["fixed", "random"]
+
+
 def _demo_episode():
     from services.actor.config import ActorConfig
     from services.actor.rollout import RolloutActor
@@ -148,6 +170,9 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys, blob)
     (other / weights_file.LEARNER).mkdir(parents=True)
     name = weights_file.file_name(5)
     (run / weights_file.LEARNER / name).rename(other / weights_file.LEARNER / name)
+    odd = tmp_path / "odd"  # a run whose config.json names no start pose this code knows
+    shutil.copytree(run, odd)
+    (odd / "config.json").write_text(json.dumps({"task": "block_pull", "gripper_start": "centre"}))
     out = tmp_path / "v.mp4"
     before = snapshot(tmp_path)
     cases = [
@@ -162,6 +187,7 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys, blob)
         (("--recording", tmp_path / "none.mcap", "--out", out), "no such file"),
         ((run, "--version", 3, "--task", "unknown", "--out", out), "--task must be one of"),
         ((run, "--out", out, "--size", 100), "--size must be a multiple of 16"),
+        ((odd, "--out", out), "gripper_start must be one of"),
     ]
     for args, problem in cases:
         code, stdout, err = play(capsys, *args)
