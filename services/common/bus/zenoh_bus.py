@@ -30,6 +30,12 @@ _LOG_ONCE = threading.Lock()
 _log_started = False
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+BLOCK_WAIT_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+BLOCK_WAIT_US = 600_000_000
+"""How long (us) a session waits on a peer that does not read before closing its transport: 10 min.
+Episodes are sent with BLOCK congestion control and a full subscriber queue waits (nothing accepted is
+dropped), so a consumer's pause (a learner writing a checkpoint of a multi-GB replay) must not outlast
+it; Zenoh's own 5 s closed the transport for good and lost what it held (docs/results.md)."""
 
 
 _PROJECT_KEYS = (
@@ -38,6 +44,7 @@ _PROJECT_KEYS = (
     "connect/endpoints",
     "connect/timeout_ms",
     "scouting/multicast/enabled",
+    BLOCK_WAIT_KEY,
 )
 """The Zenoh keys ZenohConfig's own fields write; a config file that sets one of them wins."""
 
@@ -121,6 +128,7 @@ class ZenohConfig:
         put("mode", self.mode)
         mode = json.loads(conf.get_json("mode"))  # the file's mode, where it sets one
         put("scouting/multicast/enabled", self.multicast_scouting)
+        put(BLOCK_WAIT_KEY, BLOCK_WAIT_US)
         listen = list(self.listen)
         if not listen:
             listen = [DEFAULT_ROUTER] if mode == "router" else ["tcp/127.0.0.1:0"] if mode == "peer" else []

@@ -1,0 +1,74 @@
+"""A consumer that stops reading for longer than Zenoh's default patience loses nothing.
+
+Episodes go with BLOCK congestion control and a full subscriber queue makes Zenoh's receiving thread
+wait, so a learner busy writing a checkpoint pushes back on the augmenter through the router. With
+Zenoh's default (``block/wait_before_close`` 5 s) the router then closed the transport to the
+learner for good: what it held was lost and nothing arrived afterwards, a run stalled at its replay
+gate (docs/results.md). The sessions now wait ``BLOCK_WAIT_US``."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import pytest
+
+from proto.topics import EPISODES_AUGMENTED
+from services.common.bus.zenoh_bus import BLOCK_WAIT_KEY, BLOCK_WAIT_US, ZenohBus, ZenohConfig
+from tests.helpers import build_episode, find_free_port
+
+pytestmark = [pytest.mark.e2e, pytest.mark.timeout(120)]
+
+PAUSE_S = 8.0  # longer than Zenoh's default 5 s
+SENT = 300  # episodes of 50 steps with images: far more than the queue and the socket buffers hold
+
+
+def _drain_until(sub, want: int, seconds: float) -> int:
+    got, deadline = 0, time.monotonic() + seconds
+    while got < want and time.monotonic() < deadline:
+        got += len(sub.drain())
+        time.sleep(0.05)
+    return got
+
+
+def test_every_session_waits_on_a_slow_reader_far_longer_than_zenohs_default():
+    for mode in ("router", "peer", "client"):
+        assert json.loads(ZenohConfig(mode=mode).to_zenoh().get_json(BLOCK_WAIT_KEY)) == BLOCK_WAIT_US
+    assert BLOCK_WAIT_US >= 60_000_000
+
+
+def test_a_consumer_pausing_past_zenohs_default_patience_loses_nothing_and_hears_on():
+    endpoint = f"tcp/127.0.0.1:{find_free_port()}"
+    router = ZenohBus(ZenohConfig(mode="router", listen=(endpoint,), connect=()))
+    buses = [router]
+    try:
+        consumer = ZenohBus(ZenohConfig(mode="peer", connect=(endpoint,)))
+        buses.append(consumer)
+        sub = consumer.subscribe(EPISODES_AUGMENTED, capacity=4)
+        producer = ZenohBus(ZenohConfig(mode="peer", connect=(endpoint,)))
+        buses.append(producer)
+        episode = build_episode(T=50, with_images=True)
+        deadline = time.monotonic() + 15.0  # routes are up once one episode crosses
+        while not sub.drain() and time.monotonic() < deadline:
+            producer.publish(EPISODES_AUGMENTED, episode, source="producer")
+            time.sleep(0.2)
+        assert time.monotonic() < deadline, "no episode crossed the router"
+        time.sleep(0.5)
+        sub.drain()  # warm-up repeats still in flight
+
+        sender = threading.Thread(
+            target=lambda: [
+                producer.publish(EPISODES_AUGMENTED, episode, source="producer") for _ in range(SENT)
+            ],
+            daemon=True,
+        )
+        sender.start()
+        time.sleep(PAUSE_S)  # the consumer is busy: its queue is full and Zenoh's reader waits
+        assert _drain_until(sub, SENT, 30.0) == SENT
+        sender.join(5.0)
+        producer.publish(EPISODES_AUGMENTED, episode, source="producer")
+        assert _drain_until(sub, 1, 5.0) == 1  # the path is still open
+    finally:
+        for bus in reversed(buses):
+            bus.close()
