@@ -135,7 +135,9 @@ def play_policy(a: PlayArgs) -> str:
     # the run's own start pose (a --gripper-start fixed run is filmed from the public start)
     start = _run_setting(run_dir, "gripper_start", "random")
     if start not in GRIPPER_STARTS:
-        raise ValueError(f"{run_dir}/config.json: gripper_start must be one of {GRIPPER_STARTS}, not {start!r}")
+        raise ValueError(
+            f"{run_dir}/config.json: gripper_start must be one of {GRIPPER_STARTS}, not {start!r}"
+        )
     env = make_env(task, EnvSettings(depth_image=observation == "depth", gripper_start=start))
     try:
         film = Film(a.episodes, a.size, title)
