@@ -27,6 +27,7 @@ TINY_NET = NetConfig(
     final_kernel=4,
     image_embed=8,
     action_embed=4,
+    q_action_embed=4,
     lstm_hidden=8,
     mlp_hidden=(16,),
 )

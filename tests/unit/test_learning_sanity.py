@@ -69,7 +69,7 @@ def test_recurrent_sac_learns_an_action_that_needs_memory(group):
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     net = NetConfig(group=group, image_size=SIZE, encoder=((4, 3, 3),), final_kernel=4, image_embed=16,
-                    action_embed=8, lstm_hidden=32, mlp_hidden=(32, 32))  # fmt: skip
+                    action_embed=8, q_action_embed=8, lstm_hidden=32, mlp_hidden=(32, 32))  # fmt: skip
     replay = SequenceReplay(4_000, image_size=SIZE, seq_len=2, seed=0)
     for k in range(1_500):
         replay.insert(memory_episode(rng, k))

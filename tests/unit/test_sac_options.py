@@ -31,7 +31,7 @@ pytestmark = pytest.mark.unit
 
 SIZE, SEQ_LEN = 8, 12
 NET = NetConfig(group="c4", image_size=SIZE, encoder=((2, 3, 1),), final_kernel=6, image_embed=16,
-                action_embed=8, lstm_hidden=16, mlp_hidden=(16,))  # fmt: skip
+                action_embed=8, q_action_embed=8, lstm_hidden=16, mlp_hidden=(16,))  # fmt: skip
 
 
 def replay_with(lengths: list[int], demos: int = 0) -> SequenceReplay:
