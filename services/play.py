@@ -29,7 +29,6 @@ from services.observation.depth_image import policy_images
 from services.observation.projection import segment_policy_images
 from services.tasks import TASK_CLASSES, EnvSettings, make_env
 from services.tasks.camera import scene_image
-from services.tasks.env import GRIPPER_STARTS
 
 PROG = "mea play"
 
@@ -133,12 +132,13 @@ def play_policy(a: PlayArgs) -> str:
     steps = _env_steps(run_dir, blob.version)
     title = f"v{blob.version}" + ("" if steps < 0 else f" at {steps:,} env steps")
     # the run's own start pose (a --gripper-start fixed run is filmed from the public start)
-    start = _run_setting(run_dir, "gripper_start", "random")
-    if start not in GRIPPER_STARTS:
-        raise ValueError(
-            f"{run_dir}/config.json: gripper_start must be one of {GRIPPER_STARTS}, not {start!r}"
+    try:
+        settings = EnvSettings(
+            depth_image=observation == "depth", gripper_start=_run_setting(run_dir, "gripper_start", "random")
         )
-    env = make_env(task, EnvSettings(depth_image=observation == "depth", gripper_start=start))
+    except ValueError as exc:
+        raise ValueError(f"{run_dir}/config.json: {exc}") from None
+    env = make_env(task, settings)
     try:
         film = Film(a.episodes, a.size, title)
         seeds = range(a.seed, a.seed + a.episodes)

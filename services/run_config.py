@@ -19,8 +19,7 @@ from services.actor.config import MAX_ENVS
 from services.common.bus.zenoh_derive import check_run_file
 from services.learner import init_actor
 from services.learner.config import check_device, learner_presets, preset_name
-from services.tasks import TASK_CLASSES
-from services.tasks.env import GRIPPER_STARTS
+from services.tasks import TASK_CLASSES, EnvSettings
 from services.variants import VARIANTS, check_task
 
 SERVICE_ORDER = ("learner", "augmenter", "evaluator", "actor")
@@ -201,8 +200,7 @@ class RunConfig:
             raise ValueError("recording_segment_bytes, _seconds and recording_max_bytes must be >= 0")
         if self.success_rotations is not None and self.success_rotations < 0:
             raise ValueError("success_rotations must be >= 0")
-        if self.gripper_start not in GRIPPER_STARTS:
-            raise ValueError(f"gripper_start must be one of {GRIPPER_STARTS}, not {self.gripper_start!r}")
+        EnvSettings(gripper_start=self.gripper_start)  # its check of the start pose
         if self.gripper_start != "random" and self.task in DSA_TASKS:
             raise ValueError(
                 f"gripper_start {self.gripper_start!r} is for the manipulation tasks, not {self.task}"

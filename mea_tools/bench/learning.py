@@ -183,7 +183,11 @@ class Settings:
     final_eval_episodes: int
     random_steps: int | None = None
     protocol: Protocol | None = None
-    gripper_start: str = "random"
+
+    @property
+    def gripper_start(self) -> str:
+        """``mea run --gripper-start`` of every run: the protocol's, else each task's random start."""
+        return self.protocol.gripper_start if self.protocol else "random"
 
     @property
     def seed_list(self) -> tuple[int, ...]:
@@ -257,7 +261,6 @@ def settings(cfg: LearningBenchConfig) -> Settings:
         final_eval_episodes=cfg.final_eval_episodes or p["final_eval_episodes"],
         random_steps=p.get("random_steps"),
         protocol=proto,
-        gripper_start=proto.gripper_start if proto else "random",
     )
 
 

@@ -9,7 +9,6 @@ from proto.seeds import ACTOR_SEED_STRIDE, RESTART_SEED_STRIDE
 from services.common.config import ServiceConfig
 from services.tasks import EXPERT_STYLES, TASK_CLASSES, EnvSettings
 from services.tasks.camera import CameraSettings
-from services.tasks.env import GRIPPER_STARTS
 
 POLICIES = ("expert", "random", "learned")
 EXPERTS = ("observable", "privileged")
@@ -69,8 +68,7 @@ class ActorConfig:
     def __post_init__(self) -> None:
         if self.task not in TASK_CLASSES:
             raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
-        if self.gripper_start not in GRIPPER_STARTS:
-            raise ValueError(f"gripper_start must be one of {GRIPPER_STARTS}, not {self.gripper_start!r}")
+        self.env_settings()  # checks the env settings it carries (gripper_start)
         if self.incarnation < 0 or self.random_steps < 0:
             raise ValueError("incarnation and random_steps must be >= 0")
         if not 1 <= self.envs <= MAX_ENVS:

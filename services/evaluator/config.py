@@ -10,7 +10,6 @@ from services.common.config import ServiceConfig
 from services.evaluator.core.schedule import Schedule
 from services.tasks import TASK_CLASSES, EnvSettings
 from services.tasks.camera import CameraSettings
-from services.tasks.env import GRIPPER_STARTS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,8 +58,7 @@ class EvaluatorConfig:
     def __post_init__(self) -> None:
         if self.task not in TASK_CLASSES:
             raise ValueError(f"task must be one of {sorted(TASK_CLASSES)}, not {self.task!r}")
-        if self.gripper_start not in GRIPPER_STARTS:
-            raise ValueError(f"gripper_start must be one of {GRIPPER_STARTS}, not {self.gripper_start!r}")
+        self.env_settings()  # checks the env settings it carries (gripper_start)
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
         if min(self.every_env_steps, self.final_env_steps, self.final_episodes, self.max_evaluations,

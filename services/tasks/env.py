@@ -41,13 +41,13 @@ SHOWN = {"floor": (0.82, 0.82, 0.78, 1.0), "arm": (0.72, 0.74, 0.8, 1.0)}
 """Their colours in a third-person picture (``render_scene``)."""
 
 SETTLE_STEPS = 10
+"""Physics steps the world rests after the arm is placed (``reset``, ``place_state``): objects
+settle on the floor before the first observation."""
 GRIPPER_STARTS = ("random", "fixed")
 """Gripper poses at reset: ``random`` (each task's ``initial_gripper``: MEA's premise of a random
 initial state) or ``fixed`` at ``FIXED_GRIPPER`` (the public Equi-RSAC environments' start)."""
 FIXED_GRIPPER = ((0.5, 0.0), 0.0)
 """Pivot x, y (m) and yaw (rad) of the ``fixed`` start: the workspace centre, yaw 0."""
-"""Physics steps the world rests after the arm is placed (``reset``, ``place_state``): objects
-settle on the floor before the first observation."""
 
 
 def check_action(action: np.ndarray) -> np.ndarray:

@@ -4,7 +4,8 @@ Episodes go with BLOCK congestion control and a full subscriber queue makes Zeno
 wait, so a learner busy writing a checkpoint pushes back on the augmenter through the router. With
 Zenoh's default (``block/wait_before_close`` 5 s) the router then closed the transport to the
 learner for good: what it held was lost and nothing arrived afterwards, a run stalled at its replay
-gate (docs/results.md). The sessions now wait ``BLOCK_WAIT_US``."""
+gate (docs/results.md). The sessions now wait ``BLOCK_WAIT_US``. A pause past Zenoh's lease (10 s)
+still closes the transport (a 12 s pause lost 38 of 300): not yet fixed."""
 
 from __future__ import annotations
 
@@ -20,15 +21,15 @@ from tests.helpers import build_episode, find_free_port
 
 pytestmark = [pytest.mark.e2e, pytest.mark.timeout(120)]
 
-PAUSE_S = 8.0  # longer than Zenoh's default 5 s
+PAUSE_S = 8.0  # past Zenoh's 5 s default patience, within its 10 s lease (see the module docstring)
 SENT = 300  # episodes of 50 steps with images: far more than the queue and the socket buffers hold
 
 
-def _drain_until(sub, want: int, seconds: float) -> int:
+def _receive(sub, want: int, seconds: float) -> int:
+    """Episodes received, up to ``want``, within ``seconds``."""
     got, deadline = 0, time.monotonic() + seconds
-    while got < want and time.monotonic() < deadline:
-        got += len(sub.drain())
-        time.sleep(0.05)
+    while got < want and sub.recv(timeout=max(0.0, deadline - time.monotonic())) is not None:
+        got += 1
     return got
 
 
@@ -50,12 +51,13 @@ def test_a_consumer_pausing_past_zenohs_default_patience_loses_nothing_and_hears
         buses.append(producer)
         episode = build_episode(T=50, with_images=True)
         deadline = time.monotonic() + 15.0  # routes are up once one episode crosses
-        while not sub.drain() and time.monotonic() < deadline:
+        crossed = False
+        while not crossed and time.monotonic() < deadline:
             producer.publish(EPISODES_AUGMENTED, episode, source="producer")
-            time.sleep(0.2)
-        assert time.monotonic() < deadline, "no episode crossed the router"
-        time.sleep(0.5)
-        sub.drain()  # warm-up repeats still in flight
+            crossed = sub.recv(timeout=0.2) is not None
+        assert crossed, "no episode crossed the router"
+        while sub.recv(timeout=0.5) is not None:  # warm-up repeats still in flight, until quiet
+            pass
 
         sender = threading.Thread(
             target=lambda: [
@@ -64,11 +66,12 @@ def test_a_consumer_pausing_past_zenohs_default_patience_loses_nothing_and_hears
             daemon=True,
         )
         sender.start()
-        time.sleep(PAUSE_S)  # the consumer is busy: its queue is full and Zenoh's reader waits
-        assert _drain_until(sub, SENT, 30.0) == SENT
+        # the consumer is busy (the behaviour under test, not a wait): its queue fills, Zenoh's reader waits
+        time.sleep(PAUSE_S)
+        assert _receive(sub, SENT, 30.0) == SENT
         sender.join(5.0)
         producer.publish(EPISODES_AUGMENTED, episode, source="producer")
-        assert _drain_until(sub, 1, 5.0) == 1  # the path is still open
+        assert _receive(sub, 1, 5.0) == 1  # the path is still open
     finally:
         for bus in reversed(buses):
             bus.close()

@@ -220,8 +220,12 @@ def test_alpha_loss_pushes_toward_target_entropy():
     log_alpha = torch.tensor(0.0, requires_grad=True)
     mask = torch.ones(1, 3)
     # entropy above target (log pi = -10 < 5): d/dlog_alpha = -(logp + target) = -(-10 - 5) > 0 ... alpha falls
-    (g_high,) = torch.autograd.grad(alpha_loss(log_alpha, torch.full((1, 3), -10.0), mask, -5.0), log_alpha)
-    (g_low,) = torch.autograd.grad(alpha_loss(log_alpha, torch.full((1, 3), 10.0), mask, -5.0), log_alpha)
+    (g_high,) = torch.autograd.grad(
+        alpha_loss(log_alpha, torch.full((1, 3), -10.0), mask, -5.0, "log_alpha"), log_alpha
+    )
+    (g_low,) = torch.autograd.grad(
+        alpha_loss(log_alpha, torch.full((1, 3), 10.0), mask, -5.0, "log_alpha"), log_alpha
+    )
     assert g_high.item() == pytest.approx(15.0) and g_low.item() == pytest.approx(-5.0)
 
 
@@ -267,8 +271,11 @@ def test_each_loss_has_gradients_only_for_its_own_parameters():
     g_trunk = torch.autograd.grad(pi_loss, list(critic.trunk.parameters()), allow_unused=True)
     assert all(g is None for g in g_trunk), "actor loss reaches the critic's encoder/LSTM"
     log_alpha = torch.tensor(-1.0, requires_grad=True)
-    a_loss = alpha_loss(log_alpha, policy.log_probs[:, :-1], batch.mask, -5.0)
-    assert all(g is None for g in torch.autograd.grad(a_loss, list(actor.parameters()), allow_unused=True))
+    for form in ("alpha", "log_alpha"):
+        a_loss = alpha_loss(log_alpha, policy.log_probs[:, :-1], batch.mask, -5.0, form)
+        assert all(
+            g is None for g in torch.autograd.grad(a_loss, list(actor.parameters()), allow_unused=True)
+        )
 
 
 @pytest.mark.parametrize("frozen", ["actor", "critic"])

@@ -255,7 +255,7 @@ def critique_demos(
 
 
 def alpha_loss(
-    log_alpha: Tensor, log_probs: Tensor, mask: Tensor, target_entropy: float, form: str = "log_alpha"
+    log_alpha: Tensor, log_probs: Tensor, mask: Tensor, target_entropy: float, form: str
 ) -> Tensor:
     """-c (log pi + target entropy), c = log alpha (``form`` "log_alpha") or alpha ("alpha")."""
     c = log_alpha.exp() if form == "alpha" else log_alpha
