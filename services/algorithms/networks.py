@@ -61,9 +61,9 @@ class NetConfig:
     mlp_hidden: tuple[int, ...] = (128, 128)
     """Hidden channels of the actor and Q MLPs."""
     actor_prev_action: bool = True
-    """Feed the previous action to the actor's LSTM (Equi-RSAC)."""
+    """The actor's LSTM reads a_{t-1} (Equi-RSAC)."""
     critic_layer_norm: bool = False
-    """LayerNorm after each hidden layer of the Q MLPs (RLPD)."""
+    """LayerNorm in the Q MLPs (RLPD)."""
     critic_input: str = "image"
     """Critic input: image or state (simulation only)."""
     state_critic_hidden: tuple[int, ...] = (256, 256)

@@ -104,7 +104,7 @@ class LearnerConfig:
     checkpoint_max_bytes: int = 0
     """Bytes of checkpoints kept at most (0: no budget)."""
     run_dir: Path = Path("runs/learner")
-    """Directory for the resolved config and checkpoints/."""
+    """Run directory: config and checkpoints/."""
     run_id: str = ""
     """Version lineage id; empty: from run_dir and time."""
     resume: bool = False
@@ -116,7 +116,7 @@ class LearnerConfig:
     max_env_steps: int = 0
     """Env-step budget of the run (0: none)."""
     tensorboard_dir: Path | None = None
-    """TensorBoard directory of the scalars; None: off."""
+    """TensorBoard directory; None: off."""
     tensorboard_every: int = 50
     """Updates per TensorBoard point."""
     threads: int = 0
@@ -127,13 +127,15 @@ class LearnerConfig:
     """Seed of networks, sampling and exploration noise."""
     queue: int = 64
     """Incoming episodes buffered before ingest."""
+    inbox_mb: int = 1024
+    """MiB of episodes kept while a checkpoint holds the replay; then backpressure."""
     gate_seconds: float = 0.5
     """Period of the replay gate."""
     service: ServiceConfig = ServiceConfig()
     """Identity, transport, metrics and logs."""
 
     def __post_init__(self) -> None:
-        for name in ("batch_size", "seq_len", "publish_every", "queue"):
+        for name in ("batch_size", "seq_len", "publish_every", "queue", "inbox_mb"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
         if self.keep_checkpoints < 1 or self.checkpoint_max_bytes < 0:

@@ -34,6 +34,7 @@ from services.learner.config import (
     default_run_id,
     without_foreign_group,
 )
+from services.learner.inbox import Inbox
 from services.learner.metrics import UpdateRate, learner_metrics, record_gate, record_update, rejection_reason
 
 log = logging.getLogger(__name__)
@@ -68,8 +69,11 @@ class Learner:
             if cfg.tensorboard_dir is None
             else ScalarLog(cfg.tensorboard_dir, cfg.tensorboard_every, ctx.instance)
         )
-        self._stop_ingest = threading.Event()
-        self._ingest_thread: threading.Thread | None = None
+        # received episodes wait here for the replay, so that receiving never waits on its lock (inbox.py)
+        self.inbox: Inbox[Episode] = Inbox(cfg.inbox_mb << 20)
+        self.mx["inbox_bytes"].set_function(lambda: self.inbox.nbytes)  # read at scrape time
+        self._stop_receive, self._stop_ingest = threading.Event(), threading.Event()
+        self._threads: list[threading.Thread] = []
         self.ckpt_dir = cfg.run_dir / "checkpoints"
         self._last_ckpt = time.monotonic()
 
@@ -89,13 +93,21 @@ class Learner:
         self.counts["episodes_in"] += 1
         self.mx["episodes_in"].labels(kind).inc()
 
+    def _receive_loop(self) -> None:
+        while not self._stop_receive.is_set():
+            d = self.sub.recv(timeout=0.05)
+            while d is not None and not self.inbox.put(d.message, d.size, timeout=0.1):
+                if self._stop_receive.is_set():  # unread by the learner: the actor sends it again
+                    return
+
     def _ingest_loop(self) -> None:
         next_gate = 0.0
-        while not self._stop_ingest.is_set():
-            d = self.sub.recv(timeout=0.05)
-            if d is not None:
-                self.ingest(d.message)
-            if time.monotonic() >= next_gate or d is not None:
+        # on stop, what was received is still inserted (and acknowledged) before the thread ends
+        while not self._stop_ingest.is_set() or len(self.inbox):
+            ep = self.inbox.get(timeout=0.05)
+            if ep is not None:
+                self.ingest(ep)
+            if time.monotonic() >= next_gate or ep is not None:
                 self.publish_gate()
                 next_gate = time.monotonic() + self.cfg.gate_seconds
 
@@ -114,13 +126,21 @@ class Learner:
             log.exception("publishing the replay gate failed")
 
     def start_ingest(self) -> None:
-        self._ingest_thread = threading.Thread(target=self._ingest_loop, name="ingest", daemon=True)
-        self._ingest_thread.start()
+        self._threads = [
+            threading.Thread(target=self._receive_loop, name="receive", daemon=True),
+            threading.Thread(target=self._ingest_loop, name="ingest", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
 
     def stop_ingest(self) -> None:
+        """Stop receiving, then insert what was received and stop inserting."""
+        self._stop_receive.set()
+        if self._threads:
+            self._threads[0].join(timeout=5.0)
         self._stop_ingest.set()
-        if self._ingest_thread is not None:
-            self._ingest_thread.join(timeout=5.0)
+        for t in self._threads[1:]:
+            t.join(timeout=30.0)
 
     # ---------------------------------------------------------------- training side
     def try_update(self) -> bool:
@@ -229,6 +249,8 @@ class Learner:
             "episodes_in": self.counts["episodes_in"],
             "rejected": self.counts["rejected"],
             "wait_seconds": self.wait_seconds,
+            "inbox_episodes": len(self.inbox),
+            "inbox_peak_bytes": self.inbox.peak_bytes,
         }
         out.update({k: v for k, v in self.last.items() if math.isfinite(v)})
         return out

@@ -63,6 +63,10 @@ def learner_metrics(m: ServiceMetrics) -> dict[str, Any]:
             "Export, encode and announce one weights version.",
             (0.001, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0),
         ),
+        "inbox_bytes": m.gauge(
+            "mea_learner_inbox_bytes",
+            "Bytes of received episodes waiting for the replay (while a checkpoint holds it).",
+        ),
         "checkpoints": m.counter("mea_learner_checkpoints", "Checkpoints written."),
         "checkpoint_seconds": m.histogram(
             "mea_learner_checkpoint_seconds", "Time to write one checkpoint.", (0.1, 0.5, 1, 2, 5, 10, 30, 60)

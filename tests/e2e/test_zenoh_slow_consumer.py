@@ -5,7 +5,8 @@ wait, so a learner busy writing a checkpoint pushes back on the augmenter throug
 Zenoh's default (``block/wait_before_close`` 5 s) the router then closed the transport to the
 learner for good: what it held was lost and nothing arrived afterwards, a run stalled at its replay
 gate (docs/results.md). The sessions now wait ``BLOCK_WAIT_US``. A pause past Zenoh's lease (10 s)
-still closes the transport (a 12 s pause lost 38 of 300): not yet fixed."""
+still closes the transport (a 14 s pause lost 38 of 300), so the learner never makes its reader wait
+that long: tests/e2e/test_learner_checkpoint_pause.py."""
 
 from __future__ import annotations
 

@@ -25,6 +25,9 @@ from proto.topics import ALIVE, Kind, Topic, key, may_request, may_write, parse
 
 log = logging.getLogger(__name__)
 
+SLOW_READER_WARN_S = 5.0
+"""A transport thread that has waited this long on a full subscription says so, once per message."""
+
 BadMessageHook = Callable[[Topic, str, ProtocolError], None]
 
 
@@ -105,12 +108,19 @@ class Subscription:
                 self._newest[key_expr] = payload
                 self._cond.notify()
             return
+        waiting_since, warned = time.monotonic(), False
         while not self._closed.is_set():
             try:
                 self._q.put((key_expr, payload), timeout=0.1)
                 return
             except queue.Full:
-                continue
+                if not warned and time.monotonic() - waiting_since > SLOW_READER_WARN_S:
+                    warned = True
+                    log.warning(
+                        "a subscription has been full for %.0f s: its consumer is not reading, and Zenoh "
+                        "closes a transport whose reader waits past its lease (about 10 s)",
+                        SLOW_READER_WARN_S, extra={"topic": self._topic.name},
+                    )  # fmt: skip
 
     def _get(self, timeout: float | None) -> tuple[str, bytes]:
         """The next raw (key, payload); raises queue.Empty after ``timeout`` (0: do not wait)."""
