@@ -172,14 +172,25 @@ class Cameras:
 
 
 def _downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """One point (the mean) per occupied voxel, in a deterministic order."""
+    """One point (the mean) per occupied voxel, in the voxels' (x, y, z) index order."""
     if len(points) == 0:
         return points.astype(np.float64)
     keys = np.floor(points / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(_voxel_ids(keys), return_inverse=True, return_counts=True)
     sums = np.zeros((len(counts), 3))
     np.add.at(sums, inverse.reshape(-1), points)
     return sums / counts[:, None]
+
+
+def _voxel_ids(keys: np.ndarray) -> np.ndarray:
+    """(n, 3) integer voxel indices -> one integer per voxel, ordered as the rows are in lexicographic
+    order: np.unique on these gives the groups and order of np.unique(keys, axis=0) at a fraction of
+    its cost (a row-wise unique sorts structured rows: a fifth of an env step went there)."""
+    k = keys - keys.min(axis=0)
+    span = k.max(axis=0) + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:  # not in one int64: by rows
+        return np.unique(keys, axis=0, return_inverse=True)[1].reshape(-1)
+    return (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
 
 
 def sample_fixed(points: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, int]:
