@@ -65,6 +65,8 @@ class ImitationBenchConfig:
     """Whole episodes per update."""
     rotations: int | None = None
     """Rotated copies per demo; None: the learner preset's."""
+    mea_copies: int | None = None
+    """MEA copies per demo (--variant mea); None: the augmenter's (the paper's 6)."""
     learner_preset: str = "cpu-small"
     """Learner preset whose actor network is cloned into."""
     eval_episodes: int = 50
@@ -97,6 +99,9 @@ class ImitationBenchConfig:
             raise ValueError("--updates must be >= 0, --batch, --eval-episodes and --threads >= 1")
         if (self.rotations is not None and self.rotations < 0) or self.run_seed < 0:
             raise ValueError("--rotations and --run-seed must be >= 0")
+        if self.mea_copies is not None and (self.mea_copies < 0 or self.variant != "mea"):
+            raise ValueError(f"--mea-copies must be >= 0 and needs --variant mea, not {self.mea_copies} "
+                             f"with --variant {self.variant}")  # fmt: skip
 
         if self.expert is not None and self.expert not in EXPERTS:
             raise ValueError(f"--expert must be one of {', '.join(EXPERTS)}, not {self.expert!r}")
@@ -133,10 +138,12 @@ def record_demos(run, n: int, expert: str | None = None) -> list:
     return kept
 
 
-def demo_replay(demos: list, run, learner) -> tuple[Any, dict[str, int]]:
+def demo_replay(demos: list, run, learner, mea_copies: int | None = None) -> tuple[Any, dict[str, int]]:
     """A ``SequenceReplay`` of the learner's shape holding ``demos`` and every copy the run's augmenter
-    makes of them, sized to fit them all; and its counts."""
+    makes of them (``mea_copies`` MEA copies each where given), sized to fit them all; and its counts."""
     settings = augmenter_config(run, ServiceConfig()).augment
+    if mea_copies is not None:
+        settings = dataclasses.replace(settings, mea_copies=mea_copies)
     per_demo = [
         1 + settings.isometric_count(d) + (settings.mea_count(d) if settings.applies_mea(d) else 0)
         for d in demos
@@ -285,7 +292,7 @@ def run(cfg: ImitationBenchConfig) -> dict:
         _log(f"the expert gave {len(stream)} of {max(cfg.demos)} demos; larger counts use what there is")
     rows: list[dict] = []
     for n in sorted(set(cfg.demos)):
-        replay, counts = demo_replay(stream[:n], rc, learner)
+        replay, counts = demo_replay(stream[:n], rc, learner, cfg.mea_copies)
         _log(f"{n} demos: {counts['episodes']} episodes, {counts['transitions']} transitions in replay")
         for seed in cfg.train_seeds:
             tag = f"d{n}-s{seed}"
@@ -309,7 +316,7 @@ def run(cfg: ImitationBenchConfig) -> dict:
     meta = {"task": cfg.task, "variant": cfg.variant, "learner_preset": cfg.learner_preset,
             "group": learner.algorithm.net.group, "observation": learner.algorithm.observation, "run_seed": cfg.run_seed,
             "expert": expert,
-            "rotations": rc.resolved_success_rotations(), "batch": cfg.batch, "updates": cfg.updates,
+            "rotations": rc.resolved_success_rotations(), "mea_copies": cfg.mea_copies, "batch": cfg.batch, "updates": cfg.updates,
             "eval_episodes": cfg.eval_episodes, "demo_seeds": [int(e.seed) for e in stream],
             "demo_styles": [e.policy_kind for e in stream]}  # fmt: skip
     sections = {"clones": rows, "per demo count (mean ± std over training seeds)": summary_rows(rows)}

@@ -60,6 +60,17 @@ def test_the_run_s_two_demos_and_their_copies_fill_the_replay(setting):
 
 
 @pytest.mark.slow
+def test_mea_copies_per_demo_are_the_bench_s_to_set(setting):
+    _, learner, demos, _, _ = setting
+    rc = run_config(ImitationBenchConfig(variant="mea", demos=(2,), rotations=ROTATIONS))
+    none = demo_replay(demos, rc, learner, mea_copies=0)[1]
+    assert none["episodes"] == 2 * (1 + ROTATIONS)
+    three, nine = (demo_replay(demos, rc, learner, mea_copies=k)[1]["episodes"] for k in (3, 9))
+    # MEA drops a copy it cannot make valid, so at most k more per demo, and more copies give more
+    assert none["episodes"] < three <= none["episodes"] + 2 * 3 < nine <= none["episodes"] + 2 * 9
+
+
+@pytest.mark.slow
 def test_cloning_two_demos_fits_them_and_the_clone_replays_their_actions_on_their_seeds(setting):
     rc, learner, demos, replay, _ = setting
     algo = learner.algorithm
@@ -145,6 +156,8 @@ def test_batches_drawn_with_demo_fraction_hold_the_demos_and_the_bc_term_sees_on
         (["--demos", "0"], "--demos must be one or more counts >= 1"),
         (["--learner-preset", "gasv2"], "--learner-preset must be one of"),
         (["--expert", "oracle"], "--expert must be one of"),
+        (["--mea-copies", "3"], "--mea-copies must be >= 0 and needs --variant mea"),
+        (["--variant", "mea", "--mea-copies", "-1"], "--mea-copies must be >= 0"),
     ],
 )
 def test_bad_options_are_refused_in_one_line_and_nothing_is_written(argv, message, tmp_path, capsys):
