@@ -39,6 +39,7 @@ from services.plan import actor_config, augmenter_config, learner_config
 from services.run_config import RunConfig
 from services.tasks import GENERAL_TASKS, make_env
 from services.tasks.block_pull import HALF, PullExpert, block_yaw, footprint
+from services.tasks.env import EnvSettings
 from services.variants import VARIANTS, variant
 
 HELD_EPISODES = 64
@@ -67,6 +68,8 @@ class ImitationBenchConfig:
     """Rotated copies per demo; None: the learner preset's."""
     mea_copies: int | None = None
     """MEA copies per demo (--variant mea); None: the augmenter's (the paper's 6)."""
+    gripper_start: str = "random"
+    """As `mea run --gripper-start`: demos recorded and clones evaluated from it."""
     learner_preset: str = "cpu-small"
     """Learner preset whose actor network is cloned into."""
     eval_episodes: int = 50
@@ -99,6 +102,7 @@ class ImitationBenchConfig:
             raise ValueError("--updates must be >= 0, --batch, --eval-episodes and --threads >= 1")
         if (self.rotations is not None and self.rotations < 0) or self.run_seed < 0:
             raise ValueError("--rotations and --run-seed must be >= 0")
+        EnvSettings(gripper_start=self.gripper_start)  # its check, in one line
         if self.mea_copies is not None and (self.mea_copies < 0 or self.variant != "mea"):
             raise ValueError(f"--mea-copies must be >= 0 and needs --variant mea, not {self.mea_copies} "
                              f"with --variant {self.variant}")  # fmt: skip
@@ -117,7 +121,7 @@ class ImitationBenchConfig:
 def run_config(cfg: ImitationBenchConfig):
     """The `mea run` whose demos, augmentation and learner network are cloned."""
     return RunConfig(task=cfg.task, variant=cfg.variant, learner_preset=cfg.learner_preset, seed=cfg.run_seed,
-                     demos=max(cfg.demos), success_rotations=cfg.rotations)  # fmt: skip
+                     demos=max(cfg.demos), success_rotations=cfg.rotations, gripper_start=cfg.gripper_start)  # fmt: skip
 
 
 def record_demos(run, n: int, expert: str | None = None) -> list:
@@ -196,10 +200,12 @@ class BetweenBlocks:
         self.now = False
 
 
-def evaluate(blob, task: str, depth_image: bool, episodes: int) -> dict[str, Any]:
+def evaluate(
+    blob, task: str, depth_image: bool, episodes: int, gripper_start: str = "random"
+) -> dict[str, Any]:
     """``blob``'s deterministic policy on the evaluator's first ``episodes`` held-out seeds, in the
     evaluator's env through its ``EpisodeRunner``."""
-    ecfg = EvaluatorConfig(task=task, episodes=episodes, depth_image=depth_image)
+    ecfg = EvaluatorConfig(task=task, episodes=episodes, depth_image=depth_image, gripper_start=gripper_start)
     env = make_env(task, ecfg.env_settings())
     probe = BetweenBlocks(env) if task == "block_pull" else None
     runner = EpisodeRunner(env, task, "imitation", None if probe is None else probe.step,
@@ -299,7 +305,9 @@ def run(cfg: ImitationBenchConfig) -> dict:
             actor, before, after, train_s = clone(replay, learner, seed, cfg.updates, cfg.batch, tag)
             blob = clone_blob(actor, learner, f"imitation-{cfg.task}-{cfg.variant}-{tag}")
             e0 = time.perf_counter()
-            ev = evaluate(blob, cfg.task, variant(cfg.variant).depth_image, cfg.eval_episodes)
+            ev = evaluate(
+                blob, cfg.task, variant(cfg.variant).depth_image, cfg.eval_episodes, cfg.gripper_start
+            )
             row = {"demos": n, "train_seed": seed, "success": ev["success"], "lowered_between": ev["lowered_between"],
                    "bc_loss_start": before, "bc_loss_end": after, "updates": cfg.updates,
                    "train_s": round(train_s, 1), "eval_s": round(time.perf_counter() - e0, 1)}  # fmt: skip
@@ -316,7 +324,7 @@ def run(cfg: ImitationBenchConfig) -> dict:
     meta = {"task": cfg.task, "variant": cfg.variant, "learner_preset": cfg.learner_preset,
             "group": learner.algorithm.net.group, "observation": learner.algorithm.observation, "run_seed": cfg.run_seed,
             "expert": expert,
-            "rotations": rc.resolved_success_rotations(), "mea_copies": cfg.mea_copies, "batch": cfg.batch, "updates": cfg.updates,
+            "rotations": rc.resolved_success_rotations(), "mea_copies": cfg.mea_copies, "gripper_start": cfg.gripper_start, "batch": cfg.batch, "updates": cfg.updates,
             "eval_episodes": cfg.eval_episodes, "demo_seeds": [int(e.seed) for e in stream],
             "demo_styles": [e.policy_kind for e in stream]}  # fmt: skip
     sections = {"clones": rows, "per demo count (mean ± std over training seeds)": summary_rows(rows)}

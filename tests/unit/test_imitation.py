@@ -158,6 +158,7 @@ def test_batches_drawn_with_demo_fraction_hold_the_demos_and_the_bc_term_sees_on
         (["--expert", "oracle"], "--expert must be one of"),
         (["--mea-copies", "3"], "--mea-copies must be >= 0 and needs --variant mea"),
         (["--variant", "mea", "--mea-copies", "-1"], "--mea-copies must be >= 0"),
+        (["--gripper-start", "centre"], "gripper_start must be one of ('random', 'fixed')"),
     ],
 )
 def test_bad_options_are_refused_in_one_line_and_nothing_is_written(argv, message, tmp_path, capsys):
@@ -168,3 +169,23 @@ def test_bad_options_are_refused_in_one_line_and_nothing_is_written(argv, messag
     err = " ".join(capsys.readouterr().err.replace("│", " ").split())
     assert exit_.value.code == 2 and message in err and "Traceback" not in err, err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("start", ["random", "fixed"])
+def test_the_gripper_start_reaches_the_demos_and_the_evaluation(start, monkeypatch):
+    import mea_tools.bench.imitation as imitation
+    from services.plan import actor_config
+
+    rc = run_config(ImitationBenchConfig(gripper_start=start))
+    assert actor_config(rc, 0, ServiceConfig()).env_settings().gripper_start == start  # record_demos' actor
+
+    class BuiltError(Exception):
+        pass
+
+    def make_env_(task, settings):
+        raise BuiltError(settings)
+
+    monkeypatch.setattr(imitation, "make_env", make_env_)
+    with pytest.raises(BuiltError) as built:
+        imitation.evaluate(None, "block_pull", False, 5, start)
+    assert built.value.args[0].gripper_start == start
