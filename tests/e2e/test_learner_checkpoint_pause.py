@@ -17,7 +17,7 @@ from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 from services.common.config import ServiceConfig
 from services.common.runtime import ServiceContext
 from services.learner.main import Learner
-from tests.helpers import find_free_port
+from tests.helpers import find_free_port, poll_until
 from tests.helpers.learner import learner_episode, tiny_learner_config
 from tests.helpers.zenoh_peer import peer_config
 
@@ -25,13 +25,6 @@ pytestmark = [pytest.mark.e2e, pytest.mark.timeout(150)]
 
 HOLD_S = 14.0  # past Zenoh's 10 s lease
 SENT = 600  # episodes of 50 steps: ~10 MB, far more than the subscription and the socket buffers hold
-
-
-def _wait_for(predicate, seconds: float) -> bool:
-    deadline = time.monotonic() + seconds
-    while not predicate() and time.monotonic() < deadline:
-        time.sleep(0.05)
-    return predicate()
 
 
 class RecordingLearner(Learner):
@@ -75,7 +68,7 @@ def test_episodes_sent_while_a_checkpoint_holds_the_replay_past_the_lease_all_ar
             core.start_ingest()
             try:
                 # routes are up once an episode crosses (the same one, sent again until it does)
-                assert _wait_for(lambda: send([warm_up]) or warm_up.episode_id in core.inserted, 15.0)
+                assert poll_until(lambda: send([warm_up]) or warm_up.episode_id in core.inserted, 15.0)
                 with core.lock:  # what save_checkpoint holds while it writes
                     sender = threading.Thread(target=send, args=(held,), daemon=True)
                     sender.start()
@@ -83,13 +76,13 @@ def test_episodes_sent_while_a_checkpoint_holds_the_replay_past_the_lease_all_ar
                     waited = len(core.inbox)
                 assert waited > 0, "nothing waited in the inbox: the test did not hold the replay"
                 got = lambda: [i for i in core.inserted if i in set(sent_ids)]  # noqa: E731
-                assert _wait_for(lambda: len(got()) >= SENT, 30.0), (
+                assert poll_until(lambda: len(got()) >= SENT, 30.0), (
                     f"{len(got())} of {SENT} reached the replay"
                 )
                 assert got() == sent_ids  # each once, in the order sent
                 sender.join(5.0)
                 send([after])
-                assert _wait_for(lambda: after.episode_id in core.inserted, 5.0)  # the path is still open
+                assert poll_until(lambda: after.episode_id in core.inserted, 5.0)  # the path is still open
             finally:
                 core.stop_ingest()
     finally:

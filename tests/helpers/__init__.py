@@ -13,6 +13,8 @@ import signal
 import socket
 import subprocess
 import threading
+import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -60,6 +62,14 @@ def find_free_port() -> int:
                 _issued_ports.add(port)
                 return port
     raise RuntimeError("no free port found on 127.0.0.1")
+
+
+def poll_until(predicate: Callable[[], object], seconds: float, every: float = 0.05) -> bool:
+    """Whether ``predicate()`` came true within ``seconds``, asked every ``every`` s (a bounded poll)."""
+    deadline = time.monotonic() + seconds
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(every)
+    return bool(predicate())
 
 
 def stop_process(proc: subprocess.Popen, timeout: float = 20.0) -> None:

@@ -5,7 +5,6 @@ received."""
 from __future__ import annotations
 
 import threading
-import time
 
 import pytest
 
@@ -15,6 +14,7 @@ from services.common.config import ServiceConfig
 from services.common.runtime import ServiceContext
 from services.learner.inbox import Inbox
 from services.learner.main import Learner
+from tests.helpers import poll_until
 from tests.helpers.learner import learner_episode, tiny_learner_config
 
 
@@ -56,13 +56,6 @@ def test_bad_bounds_and_sizes_are_refused(max_bytes, size):
         Inbox(max_bytes).put("x", size)
 
 
-def _wait_for(predicate, seconds: float) -> bool:
-    deadline = time.monotonic() + seconds
-    while not predicate() and time.monotonic() < deadline:
-        time.sleep(0.02)
-    return predicate()
-
-
 def test_the_learner_keeps_receiving_while_its_replay_is_held_and_inserts_everything_on_stop(tmp_path):
     hub = Hub()
     service = ServiceConfig(instance_id="learner-0", metrics_port=0, heartbeat_seconds=0.5)
@@ -84,7 +77,7 @@ def test_the_learner_keeps_receiving_while_its_replay_is_held_and_inserts_everyt
                 for ep in episodes:  # 12 > the subscription's 2: the publisher would wait without the inbox
                     producer.publish(EPISODES_AUGMENTED, ep, source="augmenter-0")
                 # one may be in the inserting thread, waiting on the lock; the rest wait in the inbox
-                assert _wait_for(lambda: len(core.inbox) >= len(episodes) - 1, 5.0)
+                assert poll_until(lambda: len(core.inbox) >= len(episodes) - 1, 5.0)
                 stopper = threading.Thread(target=core.stop_ingest, daemon=True)
                 stopper.start()  # stops receiving at once; inserting waits for the lock
                 stopper.join(0.3)
