@@ -144,13 +144,22 @@ class SequenceReplay(ReplayStorage):
 
     # ---------------------------------------------------------------- checkpoints
 
-    def state_dict(self) -> dict[str, Any]:
+    def live_episodes(self) -> tuple[np.ndarray, np.ndarray]:
+        """(serials, transitions) of the stored episodes, in insertion order: what a checkpoint needs
+        to tell which episodes it already holds (serials are never reused within a buffer's life)."""
+        live = self._order[: self._n]
+        return self._ep_serial[live].copy(), self._ep_length[live].copy()
+
+    def state_dict(self, serials: np.ndarray | None = None) -> dict[str, Any]:
         """The occupied part as numpy arrays and plain python values (safe for ``weights_only`` loads).
 
         Episodes are saved in insertion order with their observations and transitions concatenated;
-        the generator state of ``sample``'s default rng is a JSON string.
+        the generator state of ``sample``'s default rng is a JSON string. With ``serials``, only the
+        stored episodes among them (an incremental checkpoint's new part); the rest is the same.
         """
         live = self._order[: self._n]
+        if serials is not None:
+            live = live[np.isin(self._ep_serial[live], serials)]
         rows = self._ep_rows[live]
         lengths = self._ep_length[live]
         obs_rows = rows[np.arange(self.seq_len + 1) <= lengths[:, None]]
@@ -176,7 +185,7 @@ class SequenceReplay(ReplayStorage):
             "is_demo": self._ep_demo[live],
             "kind": self._ep_kind[live],
             "kind_names": list(self._kind_names),
-            "episode_id": self.episode_ids(),
+            "episode_id": [self._ep_id[int(s)] for s in live],
             "source_episode_id": [self._ep_source[int(s)] for s in live],
             "next_serial": self._next_serial,
             "evicted_episodes": self._evicted_episodes,

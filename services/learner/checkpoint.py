@@ -19,6 +19,8 @@ import numpy as np
 import torch
 
 from services.common import retention
+from services.learner import replay_segments
+from services.learner.replay_segments import Segment, SegmentError
 
 if TYPE_CHECKING:
     from services.algorithms.trainer import Trainer
@@ -103,17 +105,47 @@ def checkpoints(directory: Path) -> list[Path]:
     return [directory / name for _, name in sorted(keyed, reverse=True)]
 
 
+def next_number(directory: Path) -> int:
+    """The number the next checkpoint written in ``directory`` gets."""
+    return 1 + max([0, *(_number(p.name) or 0 for p in checkpoints(directory))])
+
+
+def listed_segments(path: Path) -> list[Segment] | None:
+    """The replay segments the checkpoint ``path`` reads (``replay_segments``): [] for one that holds
+    its replay whole, None where the file cannot be read. Cheap: the file is mapped, not read."""
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+        replay = payload["replay"]
+        if not (isinstance(replay, dict) and replay.get("layout") == replay_segments.LAYOUT):
+            return []
+        return [Segment.from_json(d) for d in replay["segments"]]
+    except Exception:  # noqa: BLE001 - a damaged file is the caller's to report when it loads it
+        return None
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except FileNotFoundError:
+        return 0
+
+
 def prune(directory: Path, keep: int = KEEP, max_bytes: int = 0) -> list[Path]:
     """Delete the oldest checkpoints beyond ``keep`` files and ``max_bytes`` bytes in all (0: no
-    budget); the newest always stays. Returns the deleted paths."""
+    budget), then the replay segments no kept checkpoint reads; the newest always stays. A
+    checkpoint's bytes are its file's and those of the segments no newer checkpoint reads (what
+    deleting it with the older ones frees). Returns the deleted checkpoint paths."""
     if keep < 1:
         raise ValueError(f"keep must be >= 1, got {keep}")
-    files = []
-    for path in reversed(checkpoints(directory)):  # oldest first
-        try:
-            files.append((path.name, path.stat().st_size))
-        except FileNotFoundError:
+    files, listed, seen = [], {}, set()
+    for path in checkpoints(directory):  # newest first
+        if not path.exists():
             continue
+        names = {seg.name for seg in listed_segments(path) or []}
+        listed[path.name] = names
+        files.append((path.name, _size(path) + sum(_size(directory / n) for n in names - seen)))
+        seen |= names
+    files.reverse()  # oldest first
     deleted = []
     for name in retention.to_delete(files, keep=keep, max_bytes=max_bytes):
         try:
@@ -126,8 +158,12 @@ def prune(directory: Path, keep: int = KEEP, max_bytes: int = 0) -> list[Path]:
             )
             continue
         deleted.append(directory / name)
+        listed.pop(name, None)
     if deleted:
         log.info("old checkpoints deleted", extra={"files": ",".join(p.name for p in deleted)})
+    gone = replay_segments.delete_unlisted(directory, set().union(*listed.values()))
+    if gone:
+        log.info("replay segments no kept checkpoint reads deleted", extra={"files": ",".join(gone)})
     return deleted
 
 
@@ -140,7 +176,7 @@ def save(
     if keep < 1:
         raise ValueError(f"keep must be >= 1, got {keep}")
     directory.mkdir(parents=True, exist_ok=True)
-    number = 1 + max([0, *(_number(p.name) or 0 for p in checkpoints(directory))])
+    number = next_number(directory)
     path, tmp = directory / file_name(number), directory / TMP
     payload = {"format": FORMAT, "learner": learner, "replay": _to_torch(replay), "meta": json.dumps(meta)}
     with open(tmp, "wb") as f:
@@ -198,12 +234,32 @@ def read(path: Path) -> tuple[dict, dict, dict]:
         meta = json.loads(payload["meta"])
     except (TypeError, ValueError) as exc:
         raise CheckpointError(f"{path}: its metadata is unreadable ({_why(exc)})") from None
-    return payload["learner"], _to_numpy(payload["replay"]), meta
+    replay = _to_numpy(payload["replay"])
+    if isinstance(replay, dict) and replay.get("layout") == replay_segments.LAYOUT:
+        replay = _joined(path, replay)
+    return payload["learner"], replay, meta
+
+
+def _joined(path: Path, replay: dict) -> dict:
+    """The whole replay state of a checkpoint that keeps it in segments."""
+    try:
+        listed = [Segment.from_json(d) for d in replay["segments"]]
+        parts = [replay_segments.read(path.parent, seg) for seg in listed]
+        return replay_segments.join(replay["manifest"], parts, replay["order"])
+    except SegmentError as exc:
+        raise CheckpointError(f"{path}: its replay is unreadable ({exc})") from None
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path}: its replay listing is unreadable ({_why(exc)})") from None
 
 
 def load(directory: Path) -> tuple[dict, dict, dict]:
     """(learner state, replay state as numpy, meta) of the newest readable checkpoint: each unreadable
     one is named in a warning with why, and the next older one tried."""
+    return load_newest(directory)[1:]
+
+
+def load_newest(directory: Path) -> tuple[Path, dict, dict, dict]:
+    """``load``, with the path of the checkpoint it read first."""
     errors = []
     candidates = checkpoints(directory)
     for i, path in enumerate(candidates):
@@ -217,7 +273,7 @@ def load(directory: Path) -> tuple[dict, dict, dict]:
         if errors:
             log.warning(f"newer checkpoints unreadable; resuming an older one, {path}",
                         extra={"path": str(path), "unreadable": len(errors)})  # fmt: skip
-        return state
+        return (path, *state)
     if not errors:
         raise CheckpointError(f"no checkpoint in {directory}")
     raise CheckpointError(f"no readable checkpoint in {directory}: " + "; ".join(errors))
@@ -295,10 +351,13 @@ def save_trainer(
     *,
     keep: int = KEEP,
     max_bytes: int = 0,
-) -> Path:
+    segments: list[Segment] | None = None,
+) -> tuple[Path, list[Segment]]:
     """Write ``trainer``'s whole state (networks, optimisers, alpha, RNG states, replay, limiter) with
     ``lineage``, the env steps and ``config`` (the resolved settings, JSON-able) as metadata; keep
-    the newest ``keep`` checkpoints within ``max_bytes`` (``save``).
+    the newest ``keep`` checkpoints within ``max_bytes`` (``save``). Returns the path and the replay
+    segments it reads, to pass as ``segments`` next time: the replay's episodes that those hold are
+    not written again (``replay_segments``; None or [] writes them all).
     The caller keeps the replay and the limiter still meanwhile."""
     meta = {
         "version": lineage.version,
@@ -311,15 +370,28 @@ def save_trainer(
     }
     # "sac" holds any algorithm's state (the key predates GASv2; checkpoints of older runs keep loading)
     learner = {"sac": on_cpu(trainer.agent.state_dict()), "rng": rng_state(trainer.rng)}
-    replay = trainer.replay.state_dict()
-    return save(directory, learner=learner, replay=replay, meta=meta, keep=keep, max_bytes=max_bytes)
+    directory.mkdir(parents=True, exist_ok=True)
+    previous = [seg for seg in segments or [] if (directory / seg.name).exists()]
+    if len(previous) != len(segments or []):
+        previous = []  # a listed segment is gone: write every episode again
+    serials, lengths = trainer.replay.live_episodes()
+    kept, new = replay_segments.plan(previous, serials, lengths)
+    manifest, episodes = replay_segments.split(trainer.replay.state_dict(serials=new))
+    if new.size or not kept:  # an empty replay still gets a segment: it carries the arrays' shapes
+        kept = [*kept, replay_segments.write(directory, next_number(directory), episodes)]
+    replay = {"layout": replay_segments.LAYOUT, "manifest": manifest, "order": serials,
+              "segments": [seg.to_json() for seg in kept]}  # fmt: skip
+    path = save(directory, learner=learner, replay=replay, meta=meta, keep=keep, max_bytes=max_bytes)
+    return path, kept
 
 
-def restore_trainer(directory: Path, trainer: Trainer) -> Lineage:
-    """Load the checkpoint in ``directory`` into ``trainer``; returns the lineage it continues."""
-    learner, replay, meta = load(directory)
+def restore_trainer(directory: Path, trainer: Trainer) -> tuple[Lineage, list[Segment]]:
+    """Load the checkpoint in ``directory`` into ``trainer``; returns the lineage it continues and the
+    replay segments it read (``save_trainer``'s ``segments``)."""
+    path, learner, replay, meta = load_newest(directory)
     trainer.agent.load_state_dict(learner["sac"])
     restore_rng(learner["rng"], trainer.rng)
     trainer.replay.load_state_dict(replay)
     trainer.limiter.load_state_dict(meta["limiter"])
-    return Lineage(int(meta["version"]), str(meta["run_id"]), dict(meta.get("last", {})))
+    lineage = Lineage(int(meta["version"]), str(meta["run_id"]), dict(meta.get("last", {})))
+    return lineage, listed_segments(path) or []

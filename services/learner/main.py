@@ -63,6 +63,7 @@ class Learner:
         self.taken: deque[str] = deque(maxlen=ACK_WINDOW)  # raw episode ids, for EpisodeAck
         self._acks_due, self._acked_at = False, 0.0
         self.wait_seconds = 0.0
+        self.segments: list[checkpoint.Segment] = []  # replay segments the newest checkpoint reads
         self._rate = UpdateRate()
         self.scalars = (
             None
@@ -195,8 +196,8 @@ class Learner:
         lineage = checkpoint.Lineage(self.version, self.run_id, self.last)
         keep = {"keep": cfg.keep_checkpoints, "max_bytes": cfg.checkpoint_max_bytes}
         with self.lock:
-            path = checkpoint.save_trainer(
-                self.ckpt_dir, self.trainer, lineage, config.to_jsonable(cfg), **keep
+            path, self.segments = checkpoint.save_trainer(
+                self.ckpt_dir, self.trainer, lineage, config.to_jsonable(cfg), **keep, segments=self.segments
             )
         self._last_ckpt = time.monotonic()
         self.mx["checkpoints"].inc()
@@ -218,11 +219,9 @@ class Learner:
     def restore(self) -> None:
         """Continue the run in ``ckpt_dir``: the checkpoint if there is one, and in any case past the
         newest version the run announced (``checkpoint.continued_lineage``)."""
-        restored = (
-            checkpoint.restore_trainer(self.ckpt_dir, self.trainer)
-            if checkpoint.exists(self.ckpt_dir)
-            else None
-        )
+        restored = None
+        if checkpoint.exists(self.ckpt_dir):
+            restored, self.segments = checkpoint.restore_trainer(self.ckpt_dir, self.trainer)
         if restored is None:
             log.warning("--resume: no checkpoint yet, starting fresh", extra={"dir": str(self.ckpt_dir)})
         lineage = checkpoint.continued_lineage(

@@ -117,7 +117,7 @@ def test_a_trainer_round_trips_with_its_lineage(tmp_path):
     assert (meta["env_steps"], meta["config"], meta["limiter"]["samples"]) == (18, {"batch_size": 4}, 2)
 
     b = tiny_trainer(min_steps=10, seed=2)
-    assert checkpoint.restore_trainer(tmp_path, b) == lineage
+    assert checkpoint.restore_trainer(tmp_path, b)[0] == lineage
     assert (b.updates, b.env_steps, b.limiter.samples) == (2, 18, 2)
     assert (len(b.replay), b.replay.episode_ids()) == (len(a.replay), a.replay.episode_ids())
     for name, tensor in a.agent.state_dict()["actor"].items():
@@ -236,5 +236,5 @@ def test_a_learner_saving_more_than_keep_resumes_from_the_newest(tmp_path):
         checkpoint.save_trainer(tmp_path, a, lineages[-1], {"v": v}, keep=2)
     assert names(tmp_path) == ["learner-000005.pt", "learner-000004.pt"]
     b = tiny_trainer(min_steps=10, seed=2)
-    assert checkpoint.restore_trainer(tmp_path, b) == lineages[-1]
+    assert checkpoint.restore_trainer(tmp_path, b)[0] == lineages[-1]
     assert b.updates == a.updates == 5

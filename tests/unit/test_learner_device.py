@@ -257,14 +257,14 @@ def test_a_checkpoint_resumes_on_another_device_with_the_same_actor(tmp_path, tr
     for _ in range(3):
         assert trainer.step() is not None
     lineage = checkpoint.Lineage(version=2, run_id="run", last={})
-    path = checkpoint.save_trainer(tmp_path, trainer, lineage, {"device": trained_on})
+    path, _ = checkpoint.save_trainer(tmp_path, trainer, lineage, {"device": trained_on})
     # written from the CPU whatever the training device: loads anywhere without map_location
     raw = torch.load(path, weights_only=True)
     tensors = [v for v in _leaves(raw["learner"]) if isinstance(v, torch.Tensor)]
     assert tensors and {t.device.type for t in tensors} == {"cpu"}
 
     resumed = filled_trainer(resumed_on, episodes=0)
-    assert checkpoint.restore_trainer(tmp_path, resumed).version == 2
+    assert checkpoint.restore_trainer(tmp_path, resumed)[0].version == 2
     assert resumed.updates == 3 and len(resumed.replay) == len(trainer.replay)
     # the same weights bit for bit; outputs as close as fp32 kernels of two devices get (cuDNN's may differ)
     with full_fp32():
