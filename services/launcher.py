@@ -35,9 +35,10 @@ from rich.live import Live
 
 from proto.topics import EPISODES_RAW
 from services.common import config, logs, run_key
-from services.common.bus.base import Bus, Credentials
+from services.common.bus.base import Bus, Credentials, Delivery
 from services.common.bus.inproc import Hub, InProcBus
 from services.common.bus.zenoh_bus import ZenohBus
+from services.common.inbox import Inbox
 from services.common.mcap_io import SegmentedRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
@@ -105,28 +106,43 @@ def stop_children(procs: dict, grace: float) -> None:
 
 class EpisodeRecorder:
     """Writes every raw episode the router sees to numbered MCAP segments in ``directory``
-    (``SegmentedRecorder``: rolled by size or age, the oldest deleted beyond a budget), in a thread
-    of the launcher. An episode an actor publishes again (no ack yet) is recorded once: the ids of the
-    last ``RECENT_IDS`` episodes are remembered (repeats come within minutes, never that many later)."""
+    (``SegmentedRecorder``: rolled by size or age, the oldest deleted beyond a budget). One thread
+    reads the router's subscription into an inbox of at most ``inbox_bytes`` and another writes from
+    it, so a slow disk or a long compression never holds the router's reader (which would hold every
+    link through the router: ``services.common.inbox``). An episode an actor publishes again (no ack
+    yet) is recorded once: the ids of the last ``RECENT_IDS`` episodes are remembered (repeats come
+    within minutes, never that many later)."""
 
     RECENT_IDS = 4096
+    INBOX_BYTES = 256 << 20
 
     def __init__(self, router: Bus, directory: Path, run: int, metadata: dict[str, str], *,
-                 segment_bytes: int = 0, segment_seconds: float = 0.0, max_bytes: int = 0) -> None:  # fmt: skip
+                 segment_bytes: int = 0, segment_seconds: float = 0.0, max_bytes: int = 0,
+                 inbox_bytes: int = INBOX_BYTES) -> None:  # fmt: skip
         self.sub = router.subscribe(EPISODES_RAW, capacity=256)
+        self.inbox: Inbox[Delivery] = Inbox(inbox_bytes)
         self.written = 0
         self.repeats = 0
         self._recent: OrderedDict[str, None] = OrderedDict()
         self.recorder = SegmentedRecorder(directory, run, metadata=metadata, compression="zstd",
                                           segment_bytes=segment_bytes, segment_seconds=segment_seconds,
                                           max_bytes=max_bytes)  # fmt: skip
-        self._stop = False
-        self.thread = threading.Thread(target=self._loop, name="recorder", daemon=True)
-        self.thread.start()
+        self._stop_receive, self._stop_write = threading.Event(), threading.Event()
+        self.threads = [threading.Thread(target=self._receive_loop, name="recorder-receive", daemon=True),
+                        threading.Thread(target=self._write_loop, name="recorder-write", daemon=True)]  # fmt: skip
+        for t in self.threads:
+            t.start()
 
-    def _loop(self) -> None:
-        while not self._stop:
-            d = self.sub.recv(timeout=0.25)
+    def _receive_loop(self) -> None:
+        while not self._stop_receive.is_set():
+            d = self.sub.recv(timeout=0.1)
+            while d is not None and not self.inbox.put(d, d.size, timeout=0.1):
+                if self._stop_receive.is_set():
+                    break
+
+    def _write_loop(self) -> None:
+        while not self._stop_write.is_set() or len(self.inbox):
+            d = self.inbox.get(timeout=0.25)
             try:
                 if d is None:
                     self.recorder.tick()  # an idle segment still ends on time
@@ -135,7 +151,7 @@ class EpisodeRecorder:
             except Exception:  # noqa: BLE001 - a recording problem must not stop training
                 log.exception("recording an episode failed")
 
-    def _write(self, d) -> None:
+    def _write(self, d: Delivery) -> None:
         eid = d.message.episode_id
         if eid in self._recent:
             self.repeats += 1
@@ -146,15 +162,21 @@ class EpisodeRecorder:
         if len(self._recent) > self.RECENT_IDS:
             self._recent.popitem(last=False)
 
-    def close(self) -> None:
+    def close(self, timeout: float = 120.0) -> None:
+        """Stop receiving, write what was received (the inbox, then what the subscription still
+        queued) and close the segment, waiting up to ``timeout`` s for the writes."""
         self.sub.close()
-        self._stop = True
-        self.thread.join(timeout=5.0)
-        try:
-            for d in self.sub.drain():  # what was already received is still written
-                self._write(d)
-        finally:
-            self.recorder.close()
+        self._stop_receive.set()
+        self.threads[0].join(timeout=5.0)
+        for d in self.sub.drain():  # the writer is still running: the inbox cannot stay full
+            self.inbox.put(d, d.size)
+        self._stop_write.set()
+        self.threads[1].join(timeout=timeout)
+        if self.threads[1].is_alive():  # a write that hangs (a dead disk): never two writers at once
+            log.error("recording did not finish; its last segment stays open",
+                      extra={"unwritten_episodes": len(self.inbox)})  # fmt: skip
+            return
+        self.recorder.close()
 
 
 def _launcher_metrics(cfg: RunConfig, router: Bus) -> ServiceMetrics:

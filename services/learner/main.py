@@ -23,6 +23,7 @@ from proto.weights import WeightsBlob
 from services.common import config, weights_file
 from services.common.bus.base import Bus, Subscription
 from services.common.config import ServiceConfig
+from services.common.inbox import Inbox
 from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.scalars import ScalarLog
 from services.common.weights import WeightsServer
@@ -34,7 +35,6 @@ from services.learner.config import (
     default_run_id,
     without_foreign_group,
 )
-from services.learner.inbox import Inbox
 from services.learner.metrics import UpdateRate, learner_metrics, record_gate, record_update, rejection_reason
 
 log = logging.getLogger(__name__)

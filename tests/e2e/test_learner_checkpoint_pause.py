@@ -1,7 +1,7 @@
 """A learner whose replay is held longer than Zenoh's lease (a checkpoint of a large replay) loses
 nothing that was sent to it meanwhile.
 
-Before the learner had an inbox (services/learner/inbox.py) the thread reading its subscription waited
+Before the learner had an inbox (services/common/inbox.py) the thread reading its subscription waited
 on the replay's lock; the subscription filled, Zenoh's reader waited with it, and past Zenoh's lease
 (about 10 s) the transport was closed and the episodes it held were lost (docs/results.md)."""
 

@@ -1,9 +1,10 @@
 """The launcher's raw-episode recording over the in-process bus: with a tiny segment size it rolls
 over many segment files, each complete, and reading the run's recording gives back every episode
-once, in the order published; a resumed run goes on in segments of its own."""
+once, in the order published; a resumed run goes on in segments of its own; a stalled disk never holds the router."""
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
@@ -71,3 +72,43 @@ def test_a_tiny_segment_size_rolls_many_segments_and_nothing_is_lost_or_repeated
     ids = [m.episode_id for _, m in read_recording(tmp_path / "episodes")]
     oldest_kept = int(ids[0].split("-")[1])
     assert ids == [f"syn-{s}" for s in range(oldest_kept, 50)] and oldest_kept > 0
+
+
+def test_a_stalled_disk_does_not_hold_the_routers_reader(tmp_path):
+    """While a write hangs, the recorder keeps reading the router's subscription (capacity 256) into
+    its inbox, so publishers through the router never wait on the disk; once the write returns,
+    every episode is recorded once, in order."""
+    hub = Hub()
+    router, actor = InProcBus(hub), InProcBus(hub)
+    recorder = EpisodeRecorder(router, tmp_path / "episodes", 0, {"task": "block_pull"})
+    release, real_write = threading.Event(), recorder.recorder.write
+
+    def stalled_write(message, topic):
+        release.wait(30)
+        real_write(message, topic=topic)
+
+    recorder.recorder.write = stalled_write
+    episodes = [synthetic_episode(seed, T=10)[0] for seed in range(300)]
+    published = threading.Event()
+
+    def publish_all():
+        for ep in episodes:
+            actor.publish(EPISODES_RAW, ep, source="actor-0")
+        published.set()
+
+    threading.Thread(target=publish_all, daemon=True).start()
+    try:
+        assert published.wait(20), "the publisher waited on the recorder's disk"
+        assert recorder.written == 0 and len(recorder.inbox) >= 300 - 256 - 1
+        release.set()
+        deadline = time.monotonic() + 30
+        while recorder.written < 300 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        release.set()
+        recorder.close()
+        actor.close()
+        router.close()
+    assert recorder.written == 300
+    recorded = [m.episode_id for _, m in read_recording(tmp_path / "episodes")]
+    assert recorded == [ep.episode_id for ep in episodes]

@@ -1,4 +1,4 @@
-"""The learner's inbox: a FIFO bounded by bytes between receiving and inserting (services/learner/inbox.py),
+"""The learner's inbox: a FIFO bounded by bytes between receiving and inserting (services/common/inbox.py),
 and the learner's use of it: receiving goes on while the replay is held, and stopping inserts what was
 received."""
 
@@ -11,8 +11,8 @@ import pytest
 from proto.topics import EPISODES_AUGMENTED
 from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
+from services.common.inbox import Inbox
 from services.common.runtime import ServiceContext
-from services.learner.inbox import Inbox
 from services.learner.main import Learner
 from tests.helpers import poll_until
 from tests.helpers.learner import learner_episode, tiny_learner_config

@@ -1,12 +1,12 @@
-"""Episodes received but not yet in the replay: a FIFO bounded by bytes, between the learner's
-receiving thread and its inserting thread.
+"""Items received but not yet handled: a FIFO bounded by bytes, between the thread that reads a
+subscription and the thread that handles what it read (the learner's inserts into its replay, the
+launcher's recording).
 
-Why: the replay's lock is held for the whole of a checkpoint (seconds to tens of seconds for a
-multi-GB replay). Were the thread that reads the subscription the one that waits on that lock, the
-subscription would fill and Zenoh's reader would wait with it; a reader that waits past Zenoh's lease
-(about 10 s) has its transport closed and what it held is lost (docs/results.md). The inbox lets the
-receiving thread keep reading while the inserting thread waits. Past ``max_bytes`` the receiving thread
-waits too (backpressure, as without the inbox); the replay gate normally stops producers long before."""
+Why: a thread that reads a subscription and then waits (on the replay's lock during a checkpoint, on
+a slow disk) lets the subscription fill, and Zenoh's reader waits with it; a reader that waits past
+Zenoh's lease (about 10 s) has its transport closed and what it held is lost (docs/results.md). With
+the inbox the reading thread keeps reading while the handling thread waits. Past ``max_bytes`` the
+reading thread waits too (backpressure, as without the inbox)."""
 
 from __future__ import annotations
 
