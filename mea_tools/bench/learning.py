@@ -90,13 +90,13 @@ PROTOCOLS: dict[str, Protocol] = {
     # the public Equi-RSAC protocol's data: 80 expert demos and 20 random episodes (50 steps each)
     "public80": Protocol(
         variants=("equirsac", "equiobs"), env_steps=40_000, seeds=2, demos=80, random_steps=1_000,
-        eval_every=1_000, reference_name="public Equi-RSAC (best Block Pull policies, 50 episodes)",
+        eval_every=2_500, reference_name="public Equi-RSAC (best Block Pull policies, 50 episodes)",
         reference={"equirsac": {40_000: 1.0}, "equiobs": {40_000: 1.0}},
     ),
     # the public reproduction linhongbin-ws/rgbd-sym: 15 demos, mean success of its baseline and MEA arm
     "public15": Protocol(
         variants=("equiobs", "mea"), env_steps=25_000, seeds=3, demos=15, random_steps=None,
-        eval_every=1_000, reference_name="public reproduction (linhongbin-ws/rgbd-sym)",
+        eval_every=2_500, reference_name="public reproduction (linhongbin-ws/rgbd-sym)",
         reference={"equiobs": dict(zip(_PUBLIC15_STEPS, (0.00, 0.27, 0.37, 0.53, 0.77), strict=True)),
                    "mea": dict(zip(_PUBLIC15_STEPS, (0.00, 0.33, 0.17, 0.53, 0.67), strict=True))},
     ),
@@ -161,7 +161,7 @@ class LearningBenchConfig:
 # workstation).
 
 PRESETS: dict[str, dict[str, Any]] = {
-    "cpu-small": {"env_steps": 20_000, "seeds": 3, "learner": None, "eval_every": 1_000, "eval_episodes": 20,
+    "cpu-small": {"env_steps": 20_000, "seeds": 3, "learner": None, "eval_every": 2_000, "eval_episodes": 20,
                   "final_eval_episodes": 50},
     "paper": {"env_steps": 40_000, "seeds": 4, "learner": "paper", "eval_every": 250, "eval_episodes": 20,
               "final_eval_episodes": 50},

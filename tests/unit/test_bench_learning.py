@@ -30,7 +30,7 @@ REPS = 300  # bootstrap resamples: enough for the verdicts below, fast on a shar
 def test_cpu_small_is_20k_steps_three_seeds_20_and_50_eval_episodes_paper_is_40k_four_seeds():
     s = settings(LearningBenchConfig())
     assert (s.budget, s.seeds, s.learner, s.eval_every, s.eval_episodes, s.final_eval_episodes) == (
-        20_000, 3, None, 1000, 20, 50)  # fmt: skip
+        20_000, 3, None, 2000, 20, 50)  # fmt: skip
     assert s.seed_list == (0, 1, 2) and s.random_steps is None and s.protocol is None
     p = settings(LearningBenchConfig(preset="paper"))
     assert (p.budget, p.seeds, p.learner, p.eval_every) == (40_000, 4, "paper", 250)
@@ -57,10 +57,11 @@ def test_a_cpu_small_run_is_make_runs_recipe_with_only_variant_seed_budget_and_r
     ]  # `make run`: mea run --task block_pull --demos 2
     parsed = config.parse(RunConfig, RUN_PRESETS, args, "mea run", "")
     expected = dataclasses.replace(
-        RunConfig(), variant="equiobs", env_steps=BUDGET, demos=2, run_dir=tmp_path / "block_pull-equiobs-s0"
-    )
+        RunConfig(), variant="equiobs", env_steps=BUDGET, demos=2, eval_every=2_000,
+        run_dir=tmp_path / "block_pull-equiobs-s0",
+    )  # fmt: skip
     assert parsed == expected  # every other setting, the learner's included, is mea run's default
-    assert (parsed.eval_every, parsed.eval_episodes, parsed.final_eval_episodes) == (1000, 20, 50)
+    assert (parsed.eval_every, parsed.eval_episodes, parsed.final_eval_episodes) == (2000, 20, 50)
     paper = LearningBenchConfig(out=tmp_path, preset="paper")
     pa = config.parse(RunConfig, RUN_PRESETS, run_args(paper, "mea-all", 3, settings(paper)), "mea run", "")
     assert (pa.learner_preset, pa.env_steps, pa.eval_every, pa.seed, pa.variant, pa.mea_on) == (
@@ -299,12 +300,12 @@ def test_public80_trains_equirsac_and_equiobs_on_80_demos_and_1000_random_steps_
     parsed = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, "equirsac", 1, s), "mea run", "")
     expected = dataclasses.replace(
         RunConfig(), variant="equirsac", seed=1, env_steps=40_000, demos=80, random_steps=1_000,
-        learner_preset="cpu-small", run_dir=tmp_path / "public80" / "block_pull-equirsac-s1",
+        learner_preset="cpu-small", eval_every=2_500, run_dir=tmp_path / "public80" / "block_pull-equirsac-s1",
     )  # fmt: skip
     assert parsed == expected
     p15 = settings(LearningBenchConfig(out=tmp_path, protocol="public15"))
     assert (p15.variants, p15.budget, p15.seeds, p15.demos, p15.random_steps, p15.eval_every) == (
-        ("equiobs", "mea"), 25_000, 3, 15, None, 1_000)  # fmt: skip
+        ("equiobs", "mea"), 25_000, 3, 15, None, 2_500)  # fmt: skip
     assert settings(LearningBenchConfig(protocol="public15", variants=("equiobs",), seeds=5)).seeds == 5
 
 
