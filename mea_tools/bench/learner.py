@@ -9,8 +9,12 @@ import multiprocessing as mp
 import platform
 import statistics
 import sys
+import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, TypeVar
 
 import numpy as np
@@ -42,6 +46,7 @@ from services.algorithms.sac.agent import RecurrentSAC
 from services.algorithms.sac.algorithm import SacConfig
 from services.common.bus.zenoh_bus import ZenohBus, ZenohConfig
 from services.common.weights import WeightsClient, WeightsServer
+from services.learner import checkpoint
 from services.learner.config import PRESETS as LEARNER_PRESETS
 from services.learner.config import check_device, prepare_device
 from services.observation.dsa import SURGICAL_GRASP_ANY, dsa_image_from_voxels
@@ -75,12 +80,16 @@ class LearnerBenchConfig:
     """GASv2 learner presets to time (world model + imagination update on windows of DSA images)."""
     gasv2_episodes: int = 64
     """Random 40-step surgical episodes in the GASv2 benchmark replay."""
+    checkpoint_episodes: int = 1000
+    """50-step episodes in the replay a learner checkpoint is timed with (0: no checkpoint rows)."""
     seed: int = 0
     json: bool = False
     """Print exactly one JSON object instead of tables."""
 
     def __post_init__(self) -> None:
         check_device(self.device, "--device")
+        if self.checkpoint_episodes < 0:
+            raise ValueError(f"--checkpoint-episodes must be >= 0, got {self.checkpoint_episodes}")
         if self.cuda_graphs and not self.device.startswith("cuda"):
             raise ValueError(f"--cuda-graphs needs a CUDA --device, not {self.device}")
         if self.updates < 1:
@@ -304,6 +313,54 @@ def bench_replay() -> list[dict[str, Any]]:
     }]  # fmt: skip
 
 
+NEW_SHARE = 0.05
+"""Share of the replay stored between two timed checkpoints (a `cpu-small` run adds about this much
+of a 25K-env-step replay in its 10 minutes between checkpoints)."""
+
+
+def _timed_save(save: Callable[[], object], directory: Path) -> tuple[float, int]:
+    """(seconds, bytes added to ``directory``) of one ``save()``."""
+    before = sum(f.stat().st_size for f in directory.rglob("*") if f.is_file())
+    t0 = time.perf_counter()
+    save()
+    seconds = time.perf_counter() - t0
+    return seconds, sum(f.stat().st_size for f in directory.rglob("*") if f.is_file()) - before
+
+
+def bench_checkpoints(cfg: LearnerBenchConfig) -> list[dict[str, Any]]:
+    """A learner checkpoint's time and bytes written, the whole replay each time (as before replay
+    segments) against only the episodes stored since the last checkpoint (``NEW_SHARE`` of them)."""
+    n = cfg.checkpoint_episodes
+    if n == 0:
+        return []
+    new = max(1, int(n * NEW_SHARE))
+    rng = np.random.default_rng(cfg.seed)
+    replay = SequenceReplay((n + new) * 50, seq_len=50, seed=cfg.seed)
+    for k in range(n):
+        replay.insert(random_episode(rng, k))
+    # only the replay and the small state beside it: the networks' part is the same either way
+    trainer = SimpleNamespace(agent=SimpleNamespace(state_dict=dict), rng=rng, replay=replay, env_steps=0,
+                              limiter=SimpleNamespace(state_dict=dict))  # fmt: skip
+    lineage = checkpoint.Lineage(0, "bench", {})
+    with tempfile.TemporaryDirectory(prefix="mea-bench-ckpt-") as tmp:
+        whole, inc = Path(tmp) / "whole", Path(tmp) / "segments"
+        whole.mkdir(), inc.mkdir()
+        _, segments = checkpoint.save_trainer(inc, trainer, lineage, {})  # type: ignore[arg-type]
+        for k in range(n, n + new):
+            replay.insert(random_episode(rng, k))
+        w_s, w_b = _timed_save(
+            lambda: checkpoint.save(whole, learner={}, replay=replay.state_dict(), meta={}), whole
+        )
+        i_s, i_b = _timed_save(
+            lambda: checkpoint.save_trainer(inc, trainer, lineage, {}, segments=segments), inc
+        )  # type: ignore[arg-type]
+    return [{
+        "replay episodes": n + new, "new since the last": new,
+        "whole replay s": w_s, "segments s": i_s, "ratio (s)": w_s / max(i_s, 1e-9),
+        "whole replay bytes": w_b, "segments bytes": i_b, "ratio (bytes)": w_b / max(i_b, 1),
+    }]  # fmt: skip
+
+
 # --------------------------------------------------------------------------------------------
 # weights latency
 # --------------------------------------------------------------------------------------------
@@ -406,6 +463,7 @@ def run(cfg: LearnerBenchConfig) -> dict:
     if cfg.gasv2_presets:
         sections["gasv2 updates (Surgical Grasp Any windows)"] = bench_gasv2_updates(cfg)
         sections["gasv2 replay memory"] = bench_gasv2_replay(cfg)
+    sections["learner checkpoint: the whole replay against the new episodes only"] = bench_checkpoints(cfg)
     sections["weights publish -> loaded by consumers"] = bench_weights(cfg) if cfg.consumers > 0 else []
     paper = next((r for r in sections["gradient updates"] if r["variant"] in ("paper:c4", "paper")), None)
     threads, cpu = torch.get_num_threads(), cfg.device == "cpu"

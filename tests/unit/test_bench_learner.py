@@ -1,10 +1,11 @@
-"""`mea bench learner`: the paper preset is compared with the public code at the same thread count."""
+"""`mea bench learner`: the paper preset is compared with the public code at the same thread count;
+checkpoints are timed whole against incremental."""
 
 from __future__ import annotations
 
 import pytest
 
-from mea_tools.bench.learner import LearnerBenchConfig, bench_updates, same_threads_rows
+from mea_tools.bench.learner import LearnerBenchConfig, bench_checkpoints, bench_updates, same_threads_rows
 
 PAPER = {"variant": "paper:c4", "s/update (median)": 2.0}
 
@@ -30,3 +31,14 @@ def test_the_update_benchmark_runs_each_preset_on_the_batches_it_really_sees():
     for row in rows:
         assert row["demo share"] == 0.5 and row["timed updates"] == 1
         assert 0.0 < row["s/update (median)"] < 60.0
+
+
+def test_the_checkpoint_rows_time_the_whole_replay_against_only_the_new_episodes():
+    (row,) = bench_checkpoints(LearnerBenchConfig(checkpoint_episodes=40))
+    assert (row["replay episodes"], row["new since the last"]) == (42, 2)
+    # the segment holds 2 of the 42 episodes: its bytes are about that share of the whole file's
+    assert 0.03 < row["segments bytes"] / row["whole replay bytes"] < 0.08
+    assert row["ratio (bytes)"] == pytest.approx(row["whole replay bytes"] / row["segments bytes"])
+    assert bench_checkpoints(LearnerBenchConfig(checkpoint_episodes=0)) == []
+    with pytest.raises(ValueError, match="checkpoint-episodes"):
+        LearnerBenchConfig(checkpoint_episodes=-1)
