@@ -17,11 +17,12 @@ import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+import tyro
 
 from mea_tools.bench import stats
 from mea_tools.bench.harness import free_port
@@ -147,8 +148,9 @@ class LearningBenchConfig:
     """Give up a single run after this long (0: no limit); rerunning the benchmark resumes it."""
     json: bool = False
     """Print exactly one JSON object instead of tables."""
-    extra: tuple[str, ...] = field(default_factory=tuple)
-    """Extra `mea run` arguments for every new run (e.g. --extra=--track)."""
+    extra: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
+    """An extra `mea run` argument for every new run, once per --extra (--extra=--track
+    --extra=--success-rotations=4)."""
     bootstrap_reps: int = 10_000
     """Stratified-bootstrap resamples per interval."""
     bootstrap_seed: int = 0

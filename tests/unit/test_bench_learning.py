@@ -410,6 +410,14 @@ def test_extra_mea_run_arguments_reach_every_new_run(tmp_path, monkeypatch):
     assert seeds == {"equirsac": [0, 1], "equiobs": [0, 1]}  # paired by seed
 
 
+def test_each_extra_flag_adds_one_argument_none_is_dropped(tmp_path):
+    argv = ["--out", str(tmp_path), "--extra=--success-rotations=4", "--extra=--learner-args=--batch-size 16"]
+    cfg = config.cli(LearningBenchConfig, argv, "mea bench learning", "")
+    assert cfg.extra == ("--success-rotations=4", "--learner-args=--batch-size 16")
+    parsed = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, "equiobs", 0, settings(cfg)), "mea run", "")
+    assert (parsed.success_rotations, parsed.learner_args) == (4, "--batch-size 16")
+
+
 def test_surgical_grasp_any_compares_gasv2_with_mea_gasv2_on_ten_demos(tmp_path):
     cfg = LearningBenchConfig(out=tmp_path, task="surgical_grasp_any")
     s = settings(cfg)
