@@ -149,8 +149,7 @@ class LearningBenchConfig:
     json: bool = False
     """Print exactly one JSON object instead of tables."""
     extra: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
-    """An extra `mea run` argument for every new run, once per --extra (--extra=--track
-    --extra=--success-rotations=4)."""
+    """One more `mea run` argument for new runs; repeat for more (--extra=--track)."""
     bootstrap_reps: int = 10_000
     """Stratified-bootstrap resamples per interval."""
     bootstrap_seed: int = 0
@@ -315,7 +314,11 @@ def run_args(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> 
         args += ["--learner-preset", s.learner]
     if s.gripper_start != "random":
         args += ["--gripper-start", s.gripper_start]
-    return [*args, "--run-dir", str(run_dir_of(cfg, variant, seed)), *cfg.extra]
+    args += ["--run-dir", str(run_dir_of(cfg, variant, seed))]
+    # an --extra flag replaces the bench's own (mea run refuses a flag given twice)
+    given = {a.split("=", 1)[0] for a in cfg.extra if a.startswith("--")}
+    pairs = [args[i : i + 2] for i in range(0, len(args), 2)]  # every argument above is a flag and a value
+    return [a for flag, value in pairs if flag not in given for a in (flag, value)] + list(cfg.extra)
 
 
 def _mea_run():

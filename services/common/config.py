@@ -129,6 +129,8 @@ def cli(cls: type[C], argv: Sequence[str], prog: str, description: str, default:
     if any(a in HELP_FLAGS for a in (args[: args.index("--")] if "--" in args else args)):  # as tyro
         print(help_text(cls, prog, description, default))
         raise SystemExit(0)
+    if repeated := repeated_flags(cls, args, default):
+        refuse(prog, f"{repeated[0]} given more than once; give all its values after one {repeated[0]}")
     try:
         with _parse_error_hook(_one_line):
             return tyro.cli(cls, prog=prog, description=description, args=list(argv), default=default)
@@ -136,6 +138,45 @@ def cli(cls: type[C], argv: Sequence[str], prog: str, description: str, default:
         refuse(prog, str(exc))
     except ValueError as exc:  # the checks of a config tyro builds past its hook (a union's member)
         refuse(prog, str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid value")
+
+
+def _parser(cls: type, prog: str = "", description: str = "", default: Any = None) -> argparse.ArgumentParser:
+    with warnings.catch_warnings():  # tyro's flags, metavars and groups (get_parser: tyro pinned)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return tyro.extras.get_parser(
+            cls,
+            prog=prog,
+            description=description,
+            default=default,
+            config=(tyro.conf.HelptextFromCommentsOff,),
+        )  # `#` comments explain the code; only docstrings are help
+
+
+_COLLECTING = ("_AppendAction", "_AppendConstAction", "_ExtendAction", "_CountAction")
+
+
+def repeated_flags(cls: type, argv: Sequence[str], default: Any = None) -> list[str]:
+    """The options of ``cls`` that take a list of values and are given more than once in ``argv``
+    (before a ``--``): argparse keeps the last list and drops the others without a word. A scalar
+    given twice is left to the usual rule, the last one wins (wrappers append overrides that way);
+    options that collect every occurrence (``tyro.conf.UseAppendAction``) are not counted."""
+    args = list(argv)
+    args = args[: args.index("--")] if "--" in args else args
+    names = [a.split("=", 1)[0] for a in args if a.startswith("--")]
+    if len(names) == len(set(names)):
+        return []  # the usual case, without building the parser
+    lists = {
+        flag
+        for action in _parser(cls, default=default)._actions
+        if type(action).__name__ not in _COLLECTING  # tyro vendors its own argparse: by name
+        and (action.nargs in ("*", "+") or (isinstance(action.nargs, int) and action.nargs > 1))
+        for flag in action.option_strings
+    }
+    seen: dict[str, int] = {}
+    for flag in names:
+        if flag in lists:
+            seen[flag] = seen.get(flag, 0) + 1
+    return [flag for flag, n in seen.items() if n > 1]
 
 
 HELP_FLAGS = ("-h", "--help")
@@ -147,15 +188,7 @@ def help_text(cls: type, prog: str, description: str, default: Any = None) -> st
     """``--help``: each option's flags, the first line of its docstring and its default on one line,
     grouped as tyro groups them (docs/options.md has the details). tyro's own boxed help wraps every
     docstring whole and pads every line, four times the bytes for the same options."""
-    with warnings.catch_warnings():  # tyro's flags, metavars and groups (get_parser: tyro pinned)
-        warnings.simplefilter("ignore", DeprecationWarning)
-        parser = tyro.extras.get_parser(
-            cls,
-            prog=prog,
-            description=description,
-            default=default,
-            config=(tyro.conf.HelptextFromCommentsOff,),
-        )  # `#` comments explain the code; only docstrings are help
+    parser = _parser(cls, prog, description, default)
     out = [f"usage: {prog} [-h] [OPTIONS]", ""]
     out += [description, ""] if description else []
     for group in parser._action_groups:
