@@ -38,7 +38,7 @@ from services.common import config, logs, run_key
 from services.common.bus.base import Bus, Credentials, Delivery
 from services.common.bus.inproc import Hub, InProcBus
 from services.common.bus.zenoh_bus import ZenohBus
-from services.common.inbox import Inbox
+from services.common.inbox import Inbox, receive_into
 from services.common.mcap_io import SegmentedRecorder
 from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
@@ -128,17 +128,11 @@ class EpisodeRecorder:
                                           segment_bytes=segment_bytes, segment_seconds=segment_seconds,
                                           max_bytes=max_bytes)  # fmt: skip
         self._stop_receive, self._stop_write = threading.Event(), threading.Event()
-        self.threads = [threading.Thread(target=self._receive_loop, name="recorder-receive", daemon=True),
+        self.threads = [threading.Thread(target=receive_into, args=(self.sub, self.inbox, self._stop_receive),
+                                         name="recorder-receive", daemon=True),
                         threading.Thread(target=self._write_loop, name="recorder-write", daemon=True)]  # fmt: skip
         for t in self.threads:
             t.start()
-
-    def _receive_loop(self) -> None:
-        while not self._stop_receive.is_set():
-            d = self.sub.recv(timeout=0.1)
-            while d is not None and not self.inbox.put(d, d.size, timeout=0.1):
-                if self._stop_receive.is_set():
-                    break
 
     def _write_loop(self) -> None:
         while not self._stop_write.is_set() or len(self.inbox):

@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from typing import Generic, TypeVar
+from typing import TYPE_CHECKING, Generic, TypeVar
+
+if TYPE_CHECKING:
+    from services.common.bus.base import Delivery, Subscription
 
 T = TypeVar("T")
 
@@ -68,4 +71,17 @@ class Inbox(Generic[T]):
             return item
 
 
-__all__ = ["Inbox"]
+def receive_into(
+    sub: Subscription, inbox: Inbox[Delivery], stop: threading.Event, poll_s: float = 0.1
+) -> None:
+    """Read ``sub`` into ``inbox`` until ``stop`` is set (a receiving thread's body). A delivery that
+    does not fit waits until it does or ``stop`` comes; one left then is not taken, and its sender,
+    unacknowledged, sends it again."""
+    while not stop.is_set():
+        d = sub.recv(timeout=poll_s)
+        while d is not None and not inbox.put(d, d.size, timeout=0.1):
+            if stop.is_set():
+                return
+
+
+__all__ = ["Inbox", "receive_into"]

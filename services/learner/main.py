@@ -21,9 +21,9 @@ from proto.episode import Episode
 from proto.topics import EPISODE_ACKS, EPISODES_AUGMENTED, REPLAY_GATE
 from proto.weights import WeightsBlob
 from services.common import config, weights_file
-from services.common.bus.base import Bus, Subscription
+from services.common.bus.base import Bus, Delivery, Subscription
 from services.common.config import ServiceConfig
-from services.common.inbox import Inbox
+from services.common.inbox import Inbox, receive_into
 from services.common.runtime import ServiceContext, subscribing_bus_factory
 from services.common.scalars import ScalarLog
 from services.common.weights import WeightsServer
@@ -71,7 +71,7 @@ class Learner:
             else ScalarLog(cfg.tensorboard_dir, cfg.tensorboard_every, ctx.instance)
         )
         # received episodes wait here for the replay, so that receiving never waits on its lock (inbox.py)
-        self.inbox: Inbox[Episode] = Inbox(cfg.inbox_mb << 20)
+        self.inbox: Inbox[Delivery] = Inbox(cfg.inbox_mb << 20)
         self.mx["inbox_bytes"].set_function(lambda: self.inbox.nbytes)  # read at scrape time
         self._stop_receive, self._stop_ingest = threading.Event(), threading.Event()
         self._threads: list[threading.Thread] = []
@@ -94,21 +94,14 @@ class Learner:
         self.counts["episodes_in"] += 1
         self.mx["episodes_in"].labels(kind).inc()
 
-    def _receive_loop(self) -> None:
-        while not self._stop_receive.is_set():
-            d = self.sub.recv(timeout=0.05)
-            while d is not None and not self.inbox.put(d.message, d.size, timeout=0.1):
-                if self._stop_receive.is_set():  # unread by the learner: the actor sends it again
-                    return
-
     def _ingest_loop(self) -> None:
         next_gate = 0.0
         # on stop, what was received is still inserted (and acknowledged) before the thread ends
         while not self._stop_ingest.is_set() or len(self.inbox):
-            ep = self.inbox.get(timeout=0.05)
-            if ep is not None:
-                self.ingest(ep)
-            if time.monotonic() >= next_gate or ep is not None:
+            d = self.inbox.get(timeout=0.05)
+            if d is not None:
+                self.ingest(d.message)
+            if time.monotonic() >= next_gate or d is not None:
                 self.publish_gate()
                 next_gate = time.monotonic() + self.cfg.gate_seconds
 
@@ -128,7 +121,12 @@ class Learner:
 
     def start_ingest(self) -> None:
         self._threads = [
-            threading.Thread(target=self._receive_loop, name="receive", daemon=True),
+            threading.Thread(
+                target=receive_into,
+                args=(self.sub, self.inbox, self._stop_receive, 0.05),
+                name="receive",
+                daemon=True,
+            ),
             threading.Thread(target=self._ingest_loop, name="ingest", daemon=True),
         ]
         for t in self._threads:

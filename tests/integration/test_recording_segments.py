@@ -19,6 +19,7 @@ from services.common.mcap_io import (
     recording_segments,
 )
 from services.launcher import EpisodeRecorder
+from tests.helpers import poll_until
 from tests.helpers.synthetic import synthetic_episode
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
@@ -35,9 +36,8 @@ def record(run_dir, run: int, seeds: range, **limits) -> EpisodeRecorder:
             actor.publish(EPISODES_RAW, ep, source=f"actor-{seed % 2}")
             if seed % 3 == 0:
                 time.sleep(0.01)  # let the recorder thread catch up now and then
-        deadline = time.monotonic() + 30
-        while recorder.written < len(seeds) // 2 and time.monotonic() < deadline:
-            time.sleep(0.01)  # half written by the thread, the rest maybe drained by close()
+        # half written by the thread, the rest maybe drained by close()
+        poll_until(lambda: recorder.written >= len(seeds) // 2, 30.0, every=0.01)
     finally:
         recorder.close()
         actor.close()
@@ -101,9 +101,7 @@ def test_a_stalled_disk_does_not_hold_the_routers_reader(tmp_path):
         assert published.wait(20), "the publisher waited on the recorder's disk"
         assert recorder.written == 0 and len(recorder.inbox) >= 300 - 256 - 1
         release.set()
-        deadline = time.monotonic() + 30
-        while recorder.written < 300 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        poll_until(lambda: recorder.written >= 300, 30.0)
     finally:
         release.set()
         recorder.close()
