@@ -32,6 +32,7 @@ __all__ = ["PRESETS", "Actor", "Critic", "NetConfig", "StateCritic", "build_acto
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 GROUP_NAMES = ("c4", "d4", "none")
 CRITIC_INPUTS = ("image", "state")
+XY_RANGES = ("box", "disc")
 PLAIN_FIELD_CHANNELS = 4
 """Channels per 'field' of the non-equivariant twin (matches the C4 channel counts)."""
 
@@ -55,7 +56,7 @@ class NetConfig:
     action_embed: int = 16
     """Channels of a_{t-1}'s embedding (LSTM input)."""
     q_action_embed: int = 144
-    """Channels of Q's action embedding (public code: 144)."""
+    """Channels of Q's action embedding (public: 144)."""
     lstm_hidden: int = 128
     """Channels of h and c."""
     mlp_hidden: tuple[int, ...] = (128, 128)
@@ -67,12 +68,16 @@ class NetConfig:
     critic_input: str = "image"
     """Critic input: image or state (simulation only)."""
     state_critic_hidden: tuple[int, ...] = (256, 256)
-    """Hidden widths of the state critic's Q MLPs."""
+    """Widths of the state critic's Q MLPs."""
+    xy_range: str = "box"
+    """(dx, dy): box (tanh per axis) or disc (radial tanh: any turn exact)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "encoder", tuple(tuple(int(v) for v in layer) for layer in self.encoder))
         object.__setattr__(self, "mlp_hidden", tuple(int(v) for v in self.mlp_hidden))
         object.__setattr__(self, "state_critic_hidden", tuple(int(v) for v in self.state_critic_hidden))
+        if self.xy_range not in XY_RANGES:
+            raise ValueError(f"xy_range must be one of {XY_RANGES}, got {self.xy_range!r}")
         if self.critic_input not in CRITIC_INPUTS:
             raise ValueError(f"critic_input must be one of {CRITIC_INPUTS}, got {self.critic_input!r}")
         if not self.state_critic_hidden or min(self.state_critic_hidden) < 1:
@@ -345,8 +350,15 @@ class _Recurrent(nn.Module):
         return h, emb, state
 
 
+def disc_xy(actor: nn.Module) -> bool:
+    """Whether ``actor`` squashes (dx, dy) onto the disc (``NetConfig.xy_range``); a module without a
+    NetConfig (the tests' small nets) keeps the box."""
+    cfg = getattr(actor, "cfg", None)
+    return isinstance(cfg, NetConfig) and cfg.xy_range == "disc"
+
+
 class Actor(_Recurrent):
-    """Gaussian policy before the tanh squashing: mean and log std per step."""
+    """Gaussian policy before the squashing (``sac.losses.squash``): mean and log std per step."""
 
     def __init__(self, cfg: NetConfig) -> None:
         super().__init__(cfg)

@@ -39,7 +39,7 @@ class ServiceConfig:
     metrics_port: int = -1
     """/metrics port; -1: the service's default, 0: off."""
     metrics_addr: str = "127.0.0.1"
-    """Address /metrics binds to (0.0.0.0 inside containers)."""
+    """/metrics address (0.0.0.0 in containers)."""
     log_format: str = "json"
     """`json` (one object per line) or `text`."""
     log_level: str = "INFO"
@@ -47,7 +47,7 @@ class ServiceConfig:
     heartbeat_seconds: float = 1.0
     """Period of the status heartbeat."""
     limits: Limits = DEFAULT_LIMITS
-    """Caps applied while decoding any received message (sizes, nesting, strings)."""
+    """Caps checked while decoding every received message."""
     topic_caps: tuple[str, ...] = ()
     """Per-topic size caps, each TOPIC=BYTES."""
     run_key_file: str = ""
@@ -245,8 +245,8 @@ def presets_line(presets: Mapping[str, Any]) -> str:
     """The ``--help`` line naming a command's presets ("" when it has only its default)."""
     if len(presets) < 2:
         return ""
-    return (f"Presets (--preset NAME, applied before the other flags): {', '.join(presets)}; "
-            f"the default is {next(iter(presets))}.")  # fmt: skip
+    return (f"Presets (--preset NAME, read before the other flags): {', '.join(presets)}; "
+            f"default {next(iter(presets))}.")  # fmt: skip
 
 
 def parse(cls: type[C], presets: Mapping[str, C], argv: Sequence[str], prog: str, description: str) -> C:

@@ -78,7 +78,7 @@ class LearnerConfig:
     algorithm: AlgorithmSettings = field(default_factory=SacConfig)
     """The algorithm and its settings (SacConfig or GasV2Config)."""
     replay_capacity: int = 100_000
-    """Replay capacity in transitions (demos never evicted)."""
+    """Transitions the replay holds (demos never evicted)."""
     batch_size: int = 32
     """Episodes (SAC) or windows (gasv2) per update."""
     demo_fraction: float = 0.0
@@ -128,7 +128,7 @@ class LearnerConfig:
     queue: int = 64
     """Incoming episodes buffered before ingest."""
     inbox_mb: int = 1024
-    """MiB of episodes kept while a checkpoint holds the replay; then backpressure."""
+    """Inbox MiB while a checkpoint holds the replay; then backpressure."""
     gate_seconds: float = 0.5
     """Period of the replay gate."""
     service: ServiceConfig = ServiceConfig()

@@ -175,14 +175,14 @@ def test_every_help_names_the_presets_correctly(capsys):
     code, out, _ = run_cli(["learner", "--help"], capsys)
     assert code == 0
     text = " ".join(out.split())
-    assert ("Presets (--preset NAME, applied before the other flags): paper, cpu-small, smoke, cpu-small-state, "
-            "gasv2, gasv2-cpu-small, gasv2-smoke; the default is paper.") in text  # fmt: skip
+    assert ("Presets (--preset NAME, read before the other flags): paper, cpu-small, smoke, cpu-small-state, "
+            "gasv2, gasv2-cpu-small, gasv2-smoke; default paper.") in text  # fmt: skip
     for command in ("run", "demos", "serve", "evaluator"):  # one preset: nothing to choose, no line
         code, out, _ = run_cli([command, "--help"], capsys)
         assert code == 0 and out.startswith(f"usage: mea {command}") and "Presets" not in out
         assert "default; default default" not in out
     assert config.presets_line({"a": 1, "b": 2}) == (
-        "Presets (--preset NAME, applied before the other flags): a, b; the default is a."
+        "Presets (--preset NAME, read before the other flags): a, b; default a."
     )
 
 

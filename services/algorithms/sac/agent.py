@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from services.algorithms.networks import disc_xy
 from services.algorithms.sac.config import SacSettings
 from services.algorithms.sac.graphed import GraphedUpdate
 from services.algorithms.sac.losses import (
@@ -103,6 +104,7 @@ class RecurrentSAC:
         cuda_graphs: bool = False,
     ) -> None:
         self.s = settings
+        self.disc = disc_xy(actor)
         self.device = torch.device(device)
         self.actor, self.critic = actor.to(self.device), critic.to(self.device)
         self.critic_target = copy.deepcopy(critic).requires_grad_(False)
@@ -237,7 +239,7 @@ class RecurrentSAC:
             embedding = feats[..., -self.critic.cfg.image_embed :]
         # the SAC actor term sees the shared embedding detached: only the critic (and BC) move it
         policy = policy_outputs(
-            self.actor, batch, embedding=None if embedding is None else embedding.detach()
+            self.actor, batch, embedding=None if embedding is None else embedding.detach(), disc=self.disc
         )
         with torch.no_grad():
             target_feats = self.critic_target.features_of(batch)
@@ -246,7 +248,7 @@ class RecurrentSAC:
             targets = bounded_targets(targets, batch, s.gamma)
         values = None
         if batch.demo is not None or s.actor_objective == "crr":
-            values = action_values(self.critic_target, target_feats, batch, policy.mean)
+            values = action_values(self.critic_target, target_feats, batch, policy.mean, self.disc)
         critique = None if values is None else critique_demos(self.critic_target, target_feats, batch, values)
         return _Forward(policy, targets, critique, values, feats, embedding)
 
@@ -259,7 +261,7 @@ class RecurrentSAC:
             else self.actor(batch.images, batch.prev_actions, embedding=fwd.embedding)[0]
         )
         keep = fwd.critique.keep if (self.s.bc_filter and fwd.critique is not None) else None
-        return bc_loss(mean, batch, keep)
+        return bc_loss(mean, batch, keep, self.disc)
 
     # checkpoints -------------------------------------------------------------------------------
     def state_dict(self) -> dict:

@@ -44,7 +44,7 @@ class SacConfig:
     trim_batches: bool = True
     """Pad batches to their longest episode, not seq_len."""
     cuda_graphs: bool = False
-    """Replay each update as a CUDA graph (CUDA learners only)."""
+    """Each update as a CUDA graph replay (CUDA only)."""
 
     def __post_init__(self) -> None:
         if self.name not in GROUPS:

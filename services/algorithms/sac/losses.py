@@ -40,38 +40,100 @@ class Batch:
 # tanh-Gaussian policy distribution
 # ------------------------------------------------------------------------------------------------
 
+XY = slice(1, 3)
+"""(dx, dy) in (jaw, dx, dy, dz, dtheta)."""
+_R_MIN = 1e-6  # |u_xy| floor: the radial map's tanh(r) / r is 1 there, and r stays differentiable
+_DISC = 1.0 - 2.0**-20  # the disc's radius: float32's tanh rounds to 1 from r ~ 9, and a copy of an
+# action on the circle itself could round out of [-1, 1] when turned
+
+
+def _tanh_log_det(u: Tensor) -> Tensor:
+    """log(1 - tanh(u)^2) elementwise, in the stable form 2 (log 2 - u - softplus(-2u))."""
+    return 2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))
+
+
+def _radius(xy: Tensor) -> Tensor:
+    return xy.pow(2).sum(-1).add(_R_MIN**2).sqrt()
+
+
+def squash(u: Tensor, disc: bool = False) -> Tensor:
+    """The action of a pre-squash value u (..., 5): tanh of each dimension, or with ``disc`` the pair
+    (dx, dy) through the radial tanh c u tanh(|u|) / |u| instead, onto the open disc of radius c just
+    below 1. Every rotation
+    maps the disc onto itself, so a copy of a disc action turned by any angle is an action the policy
+    could have taken (the box fits only quarter turns of actions near its corners)."""
+    a = torch.tanh(u)
+    if not disc:
+        return a
+    r = _radius(u[..., XY])
+    xy = u[..., XY] * (_DISC * torch.tanh(r) / r)[..., None]
+    return torch.cat([a[..., :1], xy, a[..., 3:]], -1)
+
+
+def squash_log_det(u: Tensor, disc: bool = False) -> Tensor:
+    """log |det da/du| of ``squash`` at u, summed over the action (...). The radial map's Jacobian
+    has eigenvalues c tanh'(r) (along u_xy) and c tanh(r) / r (across it)."""
+    per_dim = _tanh_log_det(u)
+    if not disc:
+        return per_dim.sum(-1)
+    r = _radius(u[..., XY])
+    radial = _tanh_log_det(r) + torch.log(torch.tanh(r) / r) + 2.0 * math.log(_DISC)
+    return per_dim[..., :1].sum(-1) + radial + per_dim[..., 3:].sum(-1)
+
+
+def unsquash(action: Tensor, disc: bool = False, bound: float = 0.999) -> Tensor:
+    """The pre-squash u of a given action, the action first clamped inside the range (each
+    dimension to +-``bound``; with ``disc`` the (dx, dy) norm to ``bound``), so recorded actions at
+    the range's edge stay finite."""
+    a = action.clamp(-bound, bound)
+    u = torch.atanh(a)
+    if not disc:
+        return u
+    xy = action[..., XY]
+    rho = xy.pow(2).sum(-1).sqrt().clamp_min(_R_MIN)
+    scale = torch.atanh(rho.clamp_max(bound) / _DISC) / rho  # clamps the norm and inverts
+    return torch.cat([u[..., :1], xy * scale[..., None], u[..., 3:]], -1)
+
 
 def tanh_gaussian_sample(
-    mean: Tensor, log_std: Tensor, noise: Tensor | None = None, generator: torch.Generator | None = None
+    mean: Tensor,
+    log_std: Tensor,
+    noise: Tensor | None = None,
+    generator: torch.Generator | None = None,
+    disc: bool = False,
 ) -> tuple[Tensor, Tensor]:
-    """Reparameterised sample a = tanh(mean + std * eps) and its log-density (summed over the last axis).
-
-    log pi(a) = sum_k [log N(u_k; mean_k, std_k) - log(1 - tanh(u_k)^2)], with the Jacobian term in the
-    stable form 2 (log 2 - u - softplus(-2u))."""
+    """Reparameterised sample a = squash(mean + std * eps) and its log-density (summed over the last
+    axis): log pi(a) = sum_k log N(u_k; mean_k, std_k) - log |det da/du| (``squash_log_det``)."""
     log_std = log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
     if noise is None:
         noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
     std = log_std.exp()
     u = mean + std * noise
     log_normal = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+    if disc:
+        return squash(u, disc), log_normal.sum(-1) - squash_log_det(u, disc)
+    # the box's terms inline, as they were: tests/unit/test_update_hashes.py pins their bits
     log_jac = 2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))
     return torch.tanh(u), (log_normal - log_jac).sum(-1)
 
 
-def tanh_gaussian_log_prob(mean: Tensor, log_std: Tensor, action: Tensor, bound: float = 0.999) -> Tensor:
-    """log pi(a) of a given action a = tanh(u) under the tanh-Gaussian (summed over the last axis);
-    a is clamped to +-``bound`` first, so recorded actions at the box's edge stay finite."""
+def tanh_gaussian_log_prob(
+    mean: Tensor, log_std: Tensor, action: Tensor, bound: float = 0.999, disc: bool = False
+) -> Tensor:
+    """log pi(a) of a given action a = squash(u) under the tanh-Gaussian (summed over the last axis),
+    a clamped inside the range first (``unsquash``)."""
     log_std = log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
-    a = action.clamp(-bound, bound)
-    u = torch.atanh(a)
+    u = unsquash(action, disc, bound)
     z = (u - mean) * torch.exp(-log_std)
     log_normal = -0.5 * z.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
-    return (log_normal - torch.log1p(-a.pow(2))).sum(-1)
+    if disc:
+        return log_normal.sum(-1) - squash_log_det(u, disc)
+    return (log_normal - torch.log1p(-action.clamp(-bound, bound).pow(2))).sum(-1)
 
 
-def deterministic_action(mean: Tensor) -> Tensor:
-    """Evaluation action: tanh of the mean."""
-    return torch.tanh(mean)
+def deterministic_action(mean: Tensor, disc: bool = False) -> Tensor:
+    """Evaluation action: the squashed mean."""
+    return squash(mean, disc)
 
 
 def masked_mean(x: Tensor, mask: Tensor) -> Tensor:
@@ -91,14 +153,21 @@ class PolicyOutputs:
     log_probs: Tensor  # (B, L+1)
     mean: Tensor
     log_std: Tensor
+    disc: bool = False  # the (dx, dy) range of ``squash``
 
 
 def policy_outputs(
-    actor: nn.Module, batch: Batch, noise: Tensor | None = None, embedding: Tensor | None = None
+    actor: nn.Module,
+    batch: Batch,
+    noise: Tensor | None = None,
+    embedding: Tensor | None = None,
+    disc: bool = False,
 ) -> PolicyOutputs:
+    """One actor pass: samples, log-probs, mean and log std at every observation; ``disc``: the
+    actor's (dx, dy) range (``squash``)."""
     mean, log_std, _ = actor(batch.images, batch.prev_actions, embedding=embedding, obs_mask=batch.obs_mask)
-    actions, log_probs = tanh_gaussian_sample(mean, log_std, noise)
-    return PolicyOutputs(actions, log_probs, mean, log_std)
+    actions, log_probs = tanh_gaussian_sample(mean, log_std, noise, disc=disc)
+    return PolicyOutputs(actions, log_probs, mean, log_std, disc)
 
 
 def n_step_targets(
@@ -179,19 +248,21 @@ class ActionValues:
     (B, L), no gradient: read by the Q filter and the critique (``critique_demos``) and by CRR."""
 
     replayed: Tensor  # min Q(h_t, a_t)
-    policy: Tensor  # min Q(h_t, tanh(mean_t))
+    policy: Tensor  # min Q(h_t, squash(mean_t))
 
     @property
     def advantage(self) -> Tensor:
         return self.replayed - self.policy
 
 
-def action_values(critic: nn.Module, feats: Tensor, batch: Batch, mean: Tensor) -> ActionValues:
-    """``ActionValues`` from critic features ``feats`` (B, L+1, F) and the policy's pre-tanh ``mean``."""
+def action_values(
+    critic: nn.Module, feats: Tensor, batch: Batch, mean: Tensor, disc: bool = False
+) -> ActionValues:
+    """``ActionValues`` from critic features ``feats`` (B, L+1, F) and the policy's pre-squash ``mean``."""
     with torch.no_grad():
         f = feats[:, :-1].detach()
         replayed = torch.min(*critic.q(f, batch.actions))
-        return ActionValues(replayed, torch.min(*critic.q(f, torch.tanh(mean[:, :-1].detach()))))
+        return ActionValues(replayed, torch.min(*critic.q(f, squash(mean[:, :-1].detach(), disc))))
 
 
 def crr_weights(values: ActionValues, beta: float) -> Tensor:
@@ -206,18 +277,20 @@ def crr_weights(values: ActionValues, beta: float) -> Tensor:
 def crr_loss(policy: PolicyOutputs, batch: Batch, weights: Tensor) -> Tensor:
     """-sum_t mask_t w_t log pi(a_t | h_t) / sum_t mask_t: the policy moves only towards replayed actions,
     as far as the critic rates them (never along the critic's gradient into actions it has not seen)."""
-    log_probs = tanh_gaussian_log_prob(policy.mean[:, :-1], policy.log_std[:, :-1], batch.actions)
+    log_probs = tanh_gaussian_log_prob(
+        policy.mean[:, :-1], policy.log_std[:, :-1], batch.actions, disc=policy.disc
+    )
     return -masked_mean(weights * log_probs, batch.mask)
 
 
-def bc_loss(mean: Tensor, batch: Batch, keep: Tensor | None = None) -> Tensor:
-    """Squared error between tanh(mean) ((B, L+1, 5), the policy's pre-tanh mean) and the recorded
+def bc_loss(mean: Tensor, batch: Batch, keep: Tensor | None = None, disc: bool = False) -> Tensor:
+    """Squared error between squash(mean) ((B, L+1, 5), the policy's pre-squash mean) and the recorded
     action, summed over action dims, averaged over the demonstration transitions of the batch (0 when
     it holds none). ``keep`` (B, L): 1 where a demonstration transition is cloned (``bc_filter``);
     the average stays over all of them, so a filtered-out transition weighs 0, not more on the rest."""
     if batch.demo is None:
         return mean.new_zeros(())
-    err = (torch.tanh(mean[:, :-1]) - batch.actions).pow(2).sum(-1)
+    err = (squash(mean[:, :-1], disc) - batch.actions).pow(2).sum(-1)
     demo = batch.mask * batch.demo[:, None]
     kept = err if keep is None else err * keep
     return (kept * demo).sum() / demo.sum().clamp_min(1.0)
@@ -227,14 +300,14 @@ def bc_loss(mean: Tensor, batch: Batch, keep: Tensor | None = None) -> Tensor:
 class DemoCritique:
     """What the critic says on the batch's demonstration transitions (no gradient).
 
-    ``keep`` is the Q filter: 1 where min Q(h, a_demo) > min Q(h, tanh(mean)). ``rank_gap`` is the
+    ``keep`` is the Q filter: 1 where min Q(h, a_demo) > min Q(h, squash(mean)). ``rank_gap`` is the
     mean of Q(h, a_demo) - Q(h, g a_demo), g a quarter turn of (dx, dy): how well the critic tells
     the demonstrated move from the same move turned away (0: it cannot rank them)."""
 
     keep: Tensor  # (B, L)
     accept: Tensor  # () share of demonstration transitions kept
     rank_gap: Tensor  # ()
-    pi_gap: Tensor  # () mean Q(h, a_demo) - Q(h, tanh(mean))
+    pi_gap: Tensor  # () mean Q(h, a_demo) - Q(h, squash(mean))
 
 
 def critique_demos(

@@ -1,6 +1,6 @@
 """Recurrent SAC's policy as consumers run it: the spec its weights carry (``PolicySpec``) and the
 actor rebuilt from them, stepped one observation at a time (``ActorRuntime``): stochastic for
-actors, tanh of the mean for the evaluator. The LSTM state and the previous action are carried
+actors, the squashed mean for the evaluator. The LSTM state and the previous action are carried
 across an episode and cleared by ``reset``."""
 
 from __future__ import annotations
@@ -94,12 +94,15 @@ class ActorRuntime:
             state = (h, c)
         mean, log_std, (h1, c1) = actor.step(x, prev, state)
         actions = []
+        disc = runtimes[0].spec is not None and runtimes[0].spec.net.xy_range == "disc"
         for k, r in enumerate(runtimes):
             r._state = (h1[k : k + 1], c1[k : k + 1])
             if r.deterministic:
-                a = deterministic_action(mean[k : k + 1])
+                a = deterministic_action(mean[k : k + 1], disc)
             else:
-                a, _ = tanh_gaussian_sample(mean[k : k + 1], log_std[k : k + 1], generator=r.generator)
+                a, _ = tanh_gaussian_sample(
+                    mean[k : k + 1], log_std[k : k + 1], generator=r.generator, disc=disc
+                )
             r._prev = a
             actions.append(a[0].numpy().astype(np.float32))
         return actions

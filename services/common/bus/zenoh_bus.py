@@ -79,7 +79,7 @@ class ZenohConfig:
     """How a process joins the Zenoh network."""
 
     mode: Literal["peer", "client", "router"] = "peer"
-    """Session mode: peer, client or router."""
+    """Zenoh session mode."""
     connect: tuple[str, ...] = ()
     """Endpoints to connect to; empty: the mode's."""
     listen: tuple[str, ...] = ()
