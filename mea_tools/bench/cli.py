@@ -30,6 +30,11 @@ BENCHES: dict[str, tuple[str, str, str]] = {
         "LearningBenchConfig",
         "train EquiRSAC / EquiObs / MEA variants: success at budget, improvement timestep, AUC, wall time, curves",
     ),
+    "compare": (
+        "mea_tools.bench.compare",
+        "CompareBenchConfig",
+        "arms of training runs from different benches side by side: success at budget, AUC, P(improvement)",
+    ),
     "imitation": (
         "mea_tools.bench.imitation",
         "ImitationBenchConfig",
