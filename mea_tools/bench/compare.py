@@ -104,10 +104,12 @@ def parse_arms(specs: tuple[str, ...]) -> dict[str, list[Path]]:
     return arms
 
 
-def check_arms(arms: dict[str, list[Path]]) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """(the settings all runs share, one row per recipe setting where the arms differ); SystemExit
-    when runs differ in a ``SAME`` setting or an arm mixes recipes."""
-    configs = {label: [_config(d) for d in dirs] for label, dirs in arms.items()}
+def check_arms(
+    arms: dict[str, list[Path]], configs: dict[str, list[dict[str, Any]]]
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """(the settings all runs share, one row per recipe setting where the arms differ) from each
+    arm's run directories and their ``configs``; SystemExit when runs differ in a ``SAME`` setting
+    or an arm mixes recipes."""
     first = next(iter(configs.values()))[0]
     shared = {k: first.get(k) for k in SAME}
     for label, cfgs in configs.items():
@@ -129,8 +131,8 @@ def check_arms(arms: dict[str, list[Path]]) -> tuple[dict[str, Any], list[dict[s
     return shared, differ
 
 
-def _seed_rows(arms: dict[str, list[Path]]) -> list[dict[str, Any]]:
-    return [{"arm": label, "runs": len(dirs), "seeds": sorted(_config(d).get("seed") for d in dirs),
+def _seed_rows(arms: dict[str, list[Path]], configs: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    return [{"arm": label, "runs": len(dirs), "seeds": sorted(c.get("seed") for c in configs[label]),
              "directories": ", ".join(str(d) for d in dirs)} for label, dirs in arms.items()]  # fmt: skip
 
 
@@ -142,7 +144,8 @@ def run(cfg: CompareBenchConfig) -> dict:
     if cfg.out is not None and cfg.out.exists() and not cfg.out.is_dir():
         raise _refuse(f"--out {cfg.out} is a file, not a directory")
     arms = parse_arms(cfg.arms)
-    shared, differ = check_arms(arms)
+    configs = {label: [_config(d) for d in dirs] for label, dirs in arms.items()}
+    shared, differ = check_arms(arms, configs)
     if not differ:
         differ = [
             {
@@ -153,9 +156,8 @@ def run(cfg: CompareBenchConfig) -> dict:
     if cfg.out is not None:
         cfg.out.mkdir(parents=True, exist_ok=True)
     boot = stats.Bootstrap(reps=cfg.bootstrap_reps, seed=cfg.bootstrap_seed)
-    sections = {"what differs between the arms": differ, "arms": _seed_rows(arms)}
-    first_cfg = _config(next(iter(arms.values()))[0])
-    learner = f"{first_cfg.get('learner_preset')} (per arm: see what differs)"
+    sections = {"what differs between the arms": differ, "arms": _seed_rows(arms, configs)}
+    learner = f"{next(iter(configs.values()))[0].get('learner_preset')} (per arm: see what differs)"
     # "at budget" below means at this point (the evaluations of runs still training are 20-seed ones)
     at = cfg.at_env_steps or int(shared["env_steps"])
     sections |= summarize(str(shared["task"]), arms, at, cfg.out, learner, boot)

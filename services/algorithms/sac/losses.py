@@ -123,12 +123,13 @@ def tanh_gaussian_log_prob(
     """log pi(a) of a given action a = squash(u) under the tanh-Gaussian (summed over the last axis),
     a clamped inside the range first (``unsquash``)."""
     log_std = log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
-    u = unsquash(action, disc, bound)
+    a = action.clamp(-bound, bound)
+    u = unsquash(action, disc, bound) if disc else torch.atanh(a)
     z = (u - mean) * torch.exp(-log_std)
     log_normal = -0.5 * z.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
     if disc:
         return log_normal.sum(-1) - squash_log_det(u, disc)
-    return (log_normal - torch.log1p(-action.clamp(-bound, bound).pow(2))).sum(-1)
+    return (log_normal - torch.log1p(-a.pow(2))).sum(-1)
 
 
 def deterministic_action(mean: Tensor, disc: bool = False) -> Tensor:

@@ -15,7 +15,7 @@ import torch
 from proto.actions import ACTION_DIM
 from proto.weights import WeightsBlob
 from services.algorithms.algorithm import OBSERVATIONS
-from services.algorithms.networks import Actor, NetConfig, build_actor
+from services.algorithms.networks import Actor, NetConfig, build_actor, disc_xy
 from services.algorithms.sac.losses import deterministic_action, tanh_gaussian_sample
 from services.algorithms.tensors import images_from_codes, rebuilt
 
@@ -94,7 +94,7 @@ class ActorRuntime:
             state = (h, c)
         mean, log_std, (h1, c1) = actor.step(x, prev, state)
         actions = []
-        disc = runtimes[0].spec is not None and runtimes[0].spec.net.xy_range == "disc"
+        disc = disc_xy(actor)
         for k, r in enumerate(runtimes):
             r._state = (h1[k : k + 1], c1[k : k + 1])
             if r.deterministic:
