@@ -26,10 +26,17 @@ def to_device(array: np.ndarray, device: torch.device, dtype: torch.dtype | None
 
 def to_batch(sample: SequenceBatch, device: torch.device | str = "cpu") -> Batch:
     """Images are rebuilt from the varying channels plus the tiled constant ones, scaled by 1/255,
-    exactly as the policy runtime scales the actor's live observations."""
+    exactly as the policy runtime scales the actor's live observations. On the CPU the real
+    observations' images are also gathered once, as uint8 codes and in the encoders' channels_last
+    layout (``Batch.real_images``): each encoder pass otherwise copied the float batch twice."""
     dev = torch.device(device)
+    codes = sample.images_uint8()
+    real_images = None
+    if dev.type == "cpu":
+        real = torch.from_numpy(codes[sample.obs_mask]).contiguous(memory_format=torch.channels_last)
+        real_images = images_from_codes(real)
     return Batch(
-        images=images_from_codes(to_device(sample.images_uint8(), dev)),
+        images=images_from_codes(to_device(codes, dev)),
         actions=to_device(sample.actions, dev),
         rewards=to_device(sample.rewards, dev),
         terminated=to_device(sample.terminated, dev, torch.float32),
@@ -37,4 +44,5 @@ def to_batch(sample: SequenceBatch, device: torch.device | str = "cpu") -> Batch
         demo=to_device(sample.from_demo_set, dev, torch.float32),
         obs_mask=to_device(sample.obs_mask, dev),
         state=to_device(sample.state, dev) if sample.state.shape[-1] else None,
+        real_images=real_images,
     )

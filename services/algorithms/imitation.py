@@ -19,7 +19,7 @@ from torch import nn
 from services.algorithms.batch import to_batch
 from services.algorithms.networks import disc_xy
 from services.algorithms.replay import SequenceReplay
-from services.algorithms.sac.losses import Batch, bc_loss
+from services.algorithms.sac.losses import Batch, bc_loss, gathered
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ class CloneSettings:
 
 def clone_loss(actor: nn.Module, batch: Batch) -> torch.Tensor:
     """The BC loss of ``actor`` on ``batch``'s demonstration transitions (``sac.bc_loss``)."""
-    mean, _, _ = actor(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
+    mean, _, _ = actor(batch.images, batch.prev_actions, obs_mask=batch.obs_mask, **gathered(batch))
     return bc_loss(mean, batch, disc=disc_xy(actor))
 
 

@@ -231,19 +231,34 @@ class ImageEncoder(nn.Module):
         return self.net(x).flatten(1)
 
 
-def encode_real(encoder: nn.Module, images: Tensor, obs_mask: Tensor | None, skip_padding: bool) -> Tensor:
+def encode_real(
+    encoder: nn.Module,
+    images: Tensor,
+    obs_mask: Tensor | None,
+    skip_padding: bool,
+    real_images: Tensor | None = None,
+) -> Tensor:
     """``encoder`` over (B, T, C, H, W) images -> (B, T, E), zeros at the steps ``obs_mask`` marks as
     padding. ``skip_padding`` leaves padded images out of the encoder (the CPU: less work); otherwise
     every image goes through it and padding is zeroed after (a GPU: no host synchronisation to read
-    the mask and fixed shapes, the same values; padded images never reach a loss either way)."""
+    the mask and fixed shapes, the same values; padded images never reach a loss either way).
+    ``real_images``: ``images[obs_mask]`` already gathered (``Batch.real_images``), so that the
+    update's three encoders do not each copy the batch's images again."""
     B, T = images.shape[:2]
-    if skip_padding and obs_mask is not None and not bool(obs_mask.all()):
-        real = encoder(images[obs_mask])
-        emb = real.new_zeros(B, T, real.shape[-1])
-        emb[obs_mask] = real
-        return emb
-    emb = encoder(images.flatten(0, 1)).unflatten(0, (B, T))
-    return emb if obs_mask is None or skip_padding else emb * obs_mask.unsqueeze(-1).to(emb.dtype)
+    if not skip_padding or obs_mask is None:
+        emb = encoder(images.flatten(0, 1)).unflatten(0, (B, T))
+        return emb if obs_mask is None else emb * obs_mask.unsqueeze(-1).to(emb.dtype)
+    if real_images is not None and real_images.shape[0] != int(obs_mask.sum()):
+        raise ValueError(
+            f"{real_images.shape[0]} gathered images for {int(obs_mask.sum())} real observations"
+        )
+    if bool(obs_mask.all()):  # every step real: the gather is the flattening
+        flat = images.flatten(0, 1) if real_images is None else real_images
+        return encoder(flat).unflatten(0, (B, T))
+    real = encoder(images[obs_mask] if real_images is None else real_images)
+    emb = real.new_zeros(B, T, real.shape[-1])
+    emb[obs_mask] = real
+    return emb
 
 
 class PlainLSTM(nn.Module):
@@ -319,11 +334,15 @@ class _Recurrent(nn.Module):
         z = p.new_zeros(batch, self.cfg.lstm_hidden)
         return z, z
 
-    def encode(self, images: Tensor, obs_mask: Tensor | None = None) -> Tensor:
+    def encode(
+        self, images: Tensor, obs_mask: Tensor | None = None, real_images: Tensor | None = None
+    ) -> Tensor:
         """e(o_t) (B, T, image_embed). With ``obs_mask`` (B, T) bool, only the real observations go
         through the encoder and padded steps get zeros: padding comes after an episode's last step,
-        so with a causal LSTM and masked losses nothing real depends on it."""
-        return encode_real(self.encoder, images, obs_mask, skip_padding=images.device.type == "cpu")
+        so with a causal LSTM and masked losses nothing real depends on it. ``real_images``: see
+        ``encode_real``."""
+        cpu = images.device.type == "cpu"
+        return encode_real(self.encoder, images, obs_mask, skip_padding=cpu, real_images=real_images)
 
     def recurrent(
         self,
@@ -332,10 +351,11 @@ class _Recurrent(nn.Module):
         state: LSTMState | None,
         embedding: Tensor | None = None,
         obs_mask: Tensor | None = None,
+        real_images: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, LSTMState]:
         """(h_t (B, T, lstm_hidden), e(o_t) (B, T, image_embed), final state). ``embedding``, if given,
         is e(o_t) already computed (an encoder shared with the critic) and the encoder is skipped;
-        ``obs_mask``: see ``encode``."""
+        ``obs_mask``, ``real_images``: see ``encode``."""
         if (
             images.dim() != 5
             or prev_actions.shape[:2] != images.shape[:2]
@@ -345,7 +365,7 @@ class _Recurrent(nn.Module):
                 f"expected images (B, T, C, H, W) and prev_actions (B, T, {ACTION_DIM}), "
                 f"got {tuple(images.shape)} and {tuple(prev_actions.shape)}"
             )
-        emb = self.encode(images, obs_mask) if embedding is None else embedding
+        emb = self.encode(images, obs_mask, real_images) if embedding is None else embedding
         h, state = self.lstm(torch.cat([emb, self.action_embed(prev_actions)], dim=-1), state)
         return h, emb, state
 
@@ -378,12 +398,14 @@ class Actor(_Recurrent):
         state: LSTMState | None = None,
         embedding: Tensor | None = None,
         obs_mask: Tensor | None = None,
+        real_images: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, LSTMState]:
         """images (B, T, C, H, W), prev_actions (B, T, 5) -> mean (B, T, 5) (pre-tanh), log_std
-        (B, T, 5) in [-20, 2], final (h, c). ``embedding``, ``obs_mask``: see ``recurrent``."""
+        (B, T, 5) in [-20, 2], final (h, c). ``embedding``, ``obs_mask``, ``real_images``: see
+        ``recurrent``."""
         if not self.cfg.actor_prev_action:
             prev_actions = torch.zeros_like(prev_actions)  # invariant under every g: still equivariant
-        h, emb, state = self.recurrent(images, prev_actions, state, embedding, obs_mask)
+        h, emb, state = self.recurrent(images, prev_actions, state, embedding, obs_mask, real_images)
         z = self.mlp(torch.cat([h, emb], dim=-1))
         log_std = self.log_std_head(z).clamp(LOG_STD_MIN, LOG_STD_MAX)
         return self.mean_head(z), log_std, state
@@ -417,15 +439,20 @@ class Critic(_Recurrent):
         prev_actions: Tensor,
         state: LSTMState | None = None,
         obs_mask: Tensor | None = None,
+        real_images: Tensor | None = None,
     ) -> tuple[Tensor, LSTMState]:
         """images (B, T, C, H, W), prev_actions (B, T, 5) -> [h_t, e(o_t)] (B, T, feature_dim), final
-        state. ``obs_mask``: see ``recurrent``."""
-        h, emb, state = self.recurrent(images, prev_actions, state, obs_mask=obs_mask)
+        state. ``obs_mask``, ``real_images``: see ``recurrent``."""
+        h, emb, state = self.recurrent(
+            images, prev_actions, state, obs_mask=obs_mask, real_images=real_images
+        )
         return torch.cat([h, emb], dim=-1), state
 
     def features_of(self, batch: Any) -> Tensor:
         """``features`` of a SAC batch's sequences (B, L+1, feature_dim)."""
-        return self.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)[0]
+        return self.features(
+            batch.images, batch.prev_actions, obs_mask=batch.obs_mask, real_images=batch.real_images
+        )[0]
 
     def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
         """features (..., feature_dim), actions (..., 5) -> (Q1, Q2), each (...)."""

@@ -87,6 +87,31 @@ def test_skipping_padded_images_in_the_encoders_changes_nothing():
     )
 
 
+@pytest.mark.parametrize("lengths", [[2, 9, 4], [SEQ_LEN, SEQ_LEN]])
+def test_images_gathered_once_per_batch_give_the_same_bits(lengths):
+    """``to_batch`` gathers the real observations' images once on the CPU (``Batch.real_images``);
+    every loss and gradient is bit for bit what each encoder's own gather gave, with padding and
+    without."""
+    batch = to_batch(replay_with(lengths).sample(len(lengths), np.random.default_rng(2)))
+    assert batch.real_images is not None
+    assert batch.real_images.is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(batch.real_images, batch.images[batch.obs_mask])
+    assert bool(batch.obs_mask.all()) == (lengths == [SEQ_LEN, SEQ_LEN])
+    noise = torch.randn(len(lengths), SEQ_LEN + 1, 5, generator=torch.Generator().manual_seed(3))
+    own = losses_and_grads(*nets(), dataclasses.replace(batch, real_images=None), noise)
+    once = losses_and_grads(*nets(), batch, noise)
+    for x, y in zip(own[0] + own[1], once[0] + once[1], strict=True):
+        assert torch.equal(x, y)
+
+
+def test_gathered_images_that_do_not_match_the_mask_are_refused():
+    batch = to_batch(replay_with([2, 9, 4]).sample(3, np.random.default_rng(2)))
+    actor, _, _ = nets()
+    stale = dataclasses.replace(batch, real_images=batch.real_images[1:])
+    with pytest.raises(ValueError, match="gathered images for"):
+        policy_outputs(actor, stale)
+
+
 def test_bc_loss_is_the_squared_error_on_demo_transitions_only():
     replay = replay_with([3, 4, 5], demos=1)
     batch = to_batch(replay.sample(4, np.random.default_rng(4), demo_fraction=0.5, trim=True))

@@ -36,6 +36,7 @@ from services.algorithms.sac.losses import (
     critique_demos,
     crr_loss,
     crr_weights,
+    gathered,
     masked_mean,
     policy_outputs,
     soft_update,
@@ -235,7 +236,9 @@ class RecurrentSAC:
         s = self.s
         feats = embedding = None
         if s.share_encoder:
-            feats, _ = self.critic.features(batch.images, batch.prev_actions, obs_mask=batch.obs_mask)
+            feats, _ = self.critic.features(
+                batch.images, batch.prev_actions, obs_mask=batch.obs_mask, **gathered(batch)
+            )
             embedding = feats[..., -self.critic.cfg.image_embed :]
         # the SAC actor term sees the shared embedding detached: only the critic (and BC) move it
         policy = policy_outputs(

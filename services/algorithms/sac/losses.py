@@ -28,12 +28,19 @@ class Batch:
     demo: Tensor | None = None  # (B,) float, 1 for demonstrations (and their copies); for the BC term
     obs_mask: Tensor | None = None  # (B, L+1) bool, real observations; padded ones skip the encoders
     state: Tensor | None = None  # (B, L+1, S) privileged state per observation, for a state critic
+    real_images: Tensor | None = None  # (N, C, H, W) images[obs_mask], channels_last (CPU: gathered once)
 
     @property
     def prev_actions(self) -> Tensor:
         """(B, L+1, A): a_{t-1} beside observation t, zeros at t = 0."""
         a = self.actions
         return torch.cat([torch.zeros_like(a[:, :1]), a], dim=1)
+
+
+def gathered(batch: Batch) -> dict[str, Tensor]:
+    """``real_images=`` for a network's call where the batch has them (networks that do not take
+    them, e.g. the tests' small ones, are then never passed the argument)."""
+    return {} if batch.real_images is None else {"real_images": batch.real_images}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -166,7 +173,9 @@ def policy_outputs(
 ) -> PolicyOutputs:
     """One actor pass: samples, log-probs, mean and log std at every observation; ``disc``: the
     actor's (dx, dy) range (``squash``)."""
-    mean, log_std, _ = actor(batch.images, batch.prev_actions, embedding=embedding, obs_mask=batch.obs_mask)
+    mean, log_std, _ = actor(
+        batch.images, batch.prev_actions, embedding=embedding, obs_mask=batch.obs_mask, **gathered(batch)
+    )
     actions, log_probs = tanh_gaussian_sample(mean, log_std, noise, disc=disc)
     return PolicyOutputs(actions, log_probs, mean, log_std, disc)
 
