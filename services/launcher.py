@@ -44,7 +44,14 @@ from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
 from services.evaluator import plot
 from services.plan import ChildSpec, check_init_actor, child_specs, describe, restarted
-from services.run_config import PRESETS, RunConfig, read_resume, recording_metadata, usable_cores
+from services.run_config import (
+    DEPTH_IMAGE_REVISION,
+    PRESETS,
+    RunConfig,
+    read_resume,
+    recording_metadata,
+    usable_cores,
+)
 from services.run_zenoh import router_config, secure
 from services.status_board import SUMMARY, StatusBoard, end_of_run, reached_env_steps, read_run_history
 from services.supervision import RestartPolicy, RestartSettings
@@ -496,7 +503,12 @@ def run(cfg: RunConfig | Prepared, given: Collection[str] = ()) -> int:
         )
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
-        config.save({**config.to_jsonable(cfg), "history": list(p.history)}, run_dir / "config.json")
+        saved = {
+            **config.to_jsonable(cfg),
+            "history": list(p.history),
+            "depth_image_revision": DEPTH_IMAGE_REVISION,
+        }
+        config.save(saved, run_dir / "config.json")
         specs = secure(specs, cfg, run_dir)  # --zenoh-config: the services join with its client config
         _save_plan(specs, run_dir)
     except BaseException:

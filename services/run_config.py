@@ -308,6 +308,12 @@ def _saved_value(name: str, value: object, hint: object) -> object:
     return value
 
 
+DEPTH_IMAGE_REVISION = 2
+"""The baseline depth image's revision, saved in config.json by ``mea run``: 2 draws the floor, as
+the public environments do (2026-11-28); runs saved without it rendered none. A depth-image run of
+another revision is not resumed: its replay would mix two observations."""
+
+
 def read_resume(cfg: RunConfig, given: Collection[str] = ()) -> Resumed:
     """``--resume RUN_DIR``: the run's saved config with this machine's settings, the ``RESUMABLE``
     ones ``given`` on the command line, resumes + 1. ValueError (one line, naming the option) for any
@@ -333,6 +339,15 @@ def read_resume(cfg: RunConfig, given: Collection[str] = ()) -> Resumed:
     if not isinstance(saved, dict):
         raise ValueError(
             f"--resume {run_dir}: config.json holds a {type(saved).__name__}, not a run's settings"
+        )
+    name = saved.get("variant", RunConfig.variant)
+    variant = VARIANTS.get(name) if isinstance(name, str) else None  # a damaged name: refused below
+    revision = saved.get("depth_image_revision", 1)
+    if variant is not None and variant.depth_image and revision != DEPTH_IMAGE_REVISION:
+        raise ValueError(
+            f"--resume {run_dir}: its depth images are of revision {revision!r}, this version renders "
+            f"revision {DEPTH_IMAGE_REVISION} (the floor drawn): its replay would mix two observations; "
+            "start a new run"
         )
     hints = typing.get_type_hints(RunConfig)
     known = {f.name for f in dataclasses.fields(RunConfig)}

@@ -325,13 +325,17 @@ class ManipulationEnv:
         )
 
     def _baseline_image(self, pivot: np.ndarray, yaw: float) -> np.ndarray:
-        """The public Equi-RSAC observation: gripper-centred orthographic depth, fingers painted."""
+        """The public Equi-RSAC observation: gripper-centred orthographic depth, fingers painted, the
+        floor seen (as in the public environments: wherever no object is, the image reads the
+        gripper's height above the floor; the point-cloud cameras never see it)."""
         body, c = self.robot.body, self.client
         for link in GRIPPER_LINKS:  # the camera sits inside the gripper: hide it, paint the fingers
             pb.changeVisualShape(body, link, rgbaColor=(1, 1, 1, 0), physicsClientId=c)
+        pb.changeVisualShape(self.floor, -1, rgbaColor=SHOWN["floor"], physicsClientId=c)
         try:
             image = render_gripper_depth(c, pivot, size=self.settings.depth_image_size)
         finally:
+            pb.changeVisualShape(self.floor, -1, rgbaColor=HIDDEN, physicsClientId=c)
             for link in GRIPPER_LINKS:
                 pb.changeVisualShape(body, link, rgbaColor=(0.6, 0.6, 0.6, 1), physicsClientId=c)
         return paint_fingers(image, pivot, self.robot.tcp(), yaw, self.robot.pad_gap(), 0.4)

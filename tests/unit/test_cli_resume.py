@@ -16,7 +16,7 @@ from services.evaluator.config import EvaluatorConfig
 from services.evaluator.history import append_history
 from services.launcher import given_fields, prepare
 from services.plan import ChildSpec, config_for
-from services.run_config import RESUMABLE, RunConfig, read_resume
+from services.run_config import DEPTH_IMAGE_REVISION, RESUMABLE, RunConfig, read_resume
 from services.status_board import StatusBoard, reached_env_steps, totals
 from tests.helpers.tree import snapshot
 
@@ -131,6 +131,29 @@ def test_resuming_a_finished_run_exits_0_without_touching_it(tmp_path, monkeypat
     out = capsys.readouterr()
     assert out.out.startswith(f"mea run: {run} is finished: 320 env steps") and out.err == ""
     assert snapshot(tmp_path) == before
+
+
+def test_a_depth_image_run_of_another_image_revision_is_refused_without_touching_it(tmp_path, capsys):
+    """An equirsac run saved before the depth image drew the floor (no revision in its config.json)
+    would fill one replay with two observations: refused in one line, nothing written. Runs on the
+    voxel image go on; a run saved with this revision resumes."""
+    old = saved_run(tmp_path / "old", variant="equirsac", env_steps=300, learner_preset="smoke")
+    before = snapshot(tmp_path)
+    with pytest.raises(SystemExit) as refused:
+        main(["run", "--resume", str(old), "--metrics-port", "0"])
+    assert refused.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"mea run: --resume {old}: its depth images are of revision 1, this version renders revision "
+        f"{DEPTH_IMAGE_REVISION} (the floor drawn): its replay would mix two observations; start a new run"
+    ], err
+    assert snapshot(tmp_path) == before
+    voxel = saved_run(tmp_path / "voxel", variant="mea", env_steps=300)
+    assert read_resume(RunConfig(resume=voxel)).config.variant == "mea"
+    new = tmp_path / "new"
+    config.save({**config.to_jsonable(RunConfig(run_dir=new, variant="equirsac")),
+                 "depth_image_revision": DEPTH_IMAGE_REVISION}, new / "config.json")  # fmt: skip
+    assert read_resume(RunConfig(resume=new)).config.variant == "equirsac"
 
 
 def board(env_steps: float, updates: float, episodes: int) -> StatusBoard:

@@ -119,6 +119,26 @@ def test_depth_image_and_voxel_projection_share_orientation():
         env.close()
 
 
+@pytest.mark.timeout(60)
+def test_the_baseline_image_reads_the_gripper_height_above_the_floor():
+    """As in the public environments, the floor is in the baseline depth image (the point-cloud
+    cameras never see it): where no object is, the image reads the depth of the floor below the
+    camera 0.06 m above the gripper, and it follows the gripper down."""
+    env = make_env("block_pull", EnvSettings(depth_image=True, gripper_start="fixed"))
+    try:
+        obs = env.reset(0)
+        for _ in range(4):
+            floor = np.median(obs.depth_image)  # most of the 0.4 m view is floor
+            assert (np.abs(obs.depth_image - floor) < 2e-3).mean() > 0.5
+            # nearly orthographic: the floor reads pivot z + 0.06 within a few mm
+            assert abs(floor - (float(obs.gripper_pose[2]) + 0.06)) < 5e-3, (floor, obs.gripper_pose)
+            before = floor
+            obs = env.step(np.array([1.0, 0.0, 0.0, -1.0, 0.0], np.float32))[0]
+            assert np.median(obs.depth_image) < before - 0.02  # down 5 cm a step, while above the limit
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 def test_a_non_finite_action_is_refused_without_touching_the_env(env, bad):
     """On every task: the refused step changes nothing, so the episode goes on as if it never came."""
