@@ -243,7 +243,7 @@ def encode_real(
     every image goes through it and padding is zeroed after (a GPU: no host synchronisation to read
     the mask and fixed shapes, the same values; padded images never reach a loss either way).
     ``real_images``: ``images[obs_mask]`` already gathered (``Batch.real_images``), so that the
-    update's three encoders do not each copy the batch's images again."""
+    update's two or three encoders do not each copy the batch's images again."""
     B, T = images.shape[:2]
     if not skip_padding or obs_mask is None:
         emb = encoder(images.flatten(0, 1)).unflatten(0, (B, T))
