@@ -44,17 +44,11 @@ from services.common.metrics import ServiceMetrics
 from services.common.runtime import Shutdown, die_with_parent, stopped_by
 from services.evaluator import plot
 from services.plan import ChildSpec, check_init_actor, child_specs, describe, restarted
-from services.run_config import (
-    DEPTH_IMAGE_REVISION,
-    PRESETS,
-    RunConfig,
-    read_resume,
-    recording_metadata,
-    usable_cores,
-)
+from services.run_config import PRESETS, RunConfig, read_resume, recording_metadata, usable_cores
 from services.run_zenoh import router_config, secure
 from services.status_board import SUMMARY, StatusBoard, end_of_run, reached_env_steps, read_run_history
 from services.supervision import RestartPolicy, RestartSettings
+from services.tasks import DEPTH_IMAGE_REVISION
 from services.tracking import Tracking
 from services.tracking import check as check_tracking
 

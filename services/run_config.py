@@ -19,7 +19,7 @@ from services.actor.config import MAX_ENVS
 from services.common.bus.zenoh_derive import check_run_file
 from services.learner import init_actor
 from services.learner.config import check_device, learner_presets, preset_name
-from services.tasks import TASK_CLASSES, EnvSettings
+from services.tasks import DEPTH_IMAGE_REVISION, TASK_CLASSES, EnvSettings
 from services.variants import VARIANTS, check_task
 
 SERVICE_ORDER = ("learner", "augmenter", "evaluator", "actor")
@@ -306,12 +306,6 @@ def _saved_value(name: str, value: object, hint: object) -> object:
     except typeguard.TypeCheckError as exc:
         raise ValueError(f"its {name} is {value!r} ({exc})") from None
     return value
-
-
-DEPTH_IMAGE_REVISION = 2
-"""The baseline depth image's revision, saved in config.json by ``mea run``: 2 draws the floor, as
-the public environments do (2026-11-28); runs saved without it rendered none. A depth-image run of
-another revision is not resumed: its replay would mix two observations."""
 
 
 def read_resume(cfg: RunConfig, given: Collection[str] = ()) -> Resumed:

@@ -43,7 +43,14 @@ def _import_pybullet_quietly() -> None:
 
 _import_pybullet_quietly()
 
-from services.tasks.env import EXPERT_STYLES, EnvSettings, ManipulationEnv, Observation, Task  # noqa: E402
+from services.tasks.env import (  # noqa: E402
+    DEPTH_IMAGE_REVISION,
+    EXPERT_STYLES,
+    EnvSettings,
+    ManipulationEnv,
+    Observation,
+    Task,
+)
 
 TASK_CLASSES: dict[str, str] = {
     "block_pull": "services.tasks.block_pull:BlockPull",
@@ -78,6 +85,7 @@ def make_env(name: str, settings=None):
 
 
 __all__ = [
+    "DEPTH_IMAGE_REVISION",
     "EXPERT_STYLES",
     "GENERAL_TASKS",
     "TASK_CLASSES",

@@ -40,6 +40,12 @@ HIDDEN = (1.0, 1.0, 1.0, 0.0)
 SHOWN = {"floor": (0.82, 0.82, 0.78, 1.0), "arm": (0.72, 0.74, 0.8, 1.0)}
 """Their colours in a third-person picture (``render_scene``)."""
 
+DEPTH_IMAGE_REVISION = 2
+"""The revision of ``_baseline_image``'s rendering, saved in a run's config.json by ``mea run``: 2
+draws the floor, as the public environments do (2026-11-28); runs saved without it rendered none. A
+depth-image run of another revision is not resumed (``read_resume``): its replay would mix two
+observations. Change it with the rendering."""
+
 SETTLE_STEPS = 10
 """Physics steps the world rests after the arm is placed (``reset``, ``place_state``): objects
 settle on the floor before the first observation."""

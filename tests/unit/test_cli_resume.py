@@ -16,8 +16,9 @@ from services.evaluator.config import EvaluatorConfig
 from services.evaluator.history import append_history
 from services.launcher import given_fields, prepare
 from services.plan import ChildSpec, config_for
-from services.run_config import DEPTH_IMAGE_REVISION, RESUMABLE, RunConfig, read_resume
+from services.run_config import RESUMABLE, RunConfig, read_resume
 from services.status_board import StatusBoard, reached_env_steps, totals
+from services.tasks import DEPTH_IMAGE_REVISION
 from tests.helpers.tree import snapshot
 
 
