@@ -305,7 +305,7 @@ def test_public80_trains_equirsac_and_equiobs_on_80_demos_and_1000_random_steps_
     assert parsed == expected
     p15 = settings(LearningBenchConfig(out=tmp_path, protocol="public15"))
     assert (p15.variants, p15.budget, p15.seeds, p15.demos, p15.random_steps, p15.eval_every) == (
-        ("equiobs", "mea"), 25_000, 3, 15, None, 2_500)  # fmt: skip
+        ("equirsac", "equiobs", "mea"), 25_000, 3, 15, None, 2_500)  # fmt: skip
     assert settings(LearningBenchConfig(protocol="public15", variants=("equiobs",), seeds=5)).seeds == 5
 
 
@@ -353,6 +353,7 @@ def test_public15_prints_ours_beside_the_public_reproduction_at_each_5k(tmp_path
         points = [(0, 0.0), *((5_000 * (i + 1) + 3, v) for i, v in enumerate(values))]  # 5,003, 10,003, ...
         make_run(out, "equiobs", seed, points, budget=25_000, demos=15)
         make_run(out, "mea", seed, points[:3], budget=25_000, demos=15)  # stopped at 10K: no later points
+        make_run(out, "equirsac", seed, [(0, 0.0), (25_003, 0.5)], budget=25_000, demos=15)
     monkeypatch.setattr(
         learning, "train", lambda cfg, variant, seed, s: learning.run_dir_of(cfg, variant, seed)
     )
@@ -369,6 +370,10 @@ def test_public15_prints_ours_beside_the_public_reproduction_at_each_5k(tmp_path
         "at/above", "at/above", "below (reference inside the CI)", "at/above", "at/above"]  # fmt: skip
     lo, hi = eq[15_000]["ours (95% CI)"]
     assert lo <= 0.3 <= hi and hi >= 0.37
+    # the reproduction's baseline saw the public code's depth image: equirsac is held to its curve
+    rsac = {k[1]: r for k, r in rows.items() if k[0] == "equirsac"}
+    assert [rsac[s]["reference"] for s in sorted(rsac)] == [0.0, 0.27, 0.37, 0.53, 0.77]
+    assert rsac[25_000]["ours (mean)"] == pytest.approx(0.5) and rsac[25_000]["verdict"] == "below"
     mea = {k[1]: r for k, r in rows.items() if k[0] == "mea"}
     assert mea[10_000]["reference"] == 0.33 and mea[10_000]["verdict"] == "below (reference inside the CI)"
     assert mea[15_000]["verdict"] == "not reached" and mea[15_000]["seeds"] == 0
