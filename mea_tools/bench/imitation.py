@@ -201,11 +201,18 @@ class BetweenBlocks:
 
 
 def evaluate(
-    blob, task: str, depth_image: bool, episodes: int, gripper_start: str = "random"
+    blob,
+    task: str,
+    depth_image: bool,
+    episodes: int,
+    gripper_start: str = "random",
+    seed_base: int | None = None,
 ) -> dict[str, Any]:
-    """``blob``'s deterministic policy on the evaluator's first ``episodes`` held-out seeds, in the
-    evaluator's env through its ``EpisodeRunner``."""
+    """``blob``'s deterministic policy on ``episodes`` held-out seeds from ``seed_base`` (None: the
+    evaluator's first), in the evaluator's env through its ``EpisodeRunner``."""
     ecfg = EvaluatorConfig(task=task, episodes=episodes, depth_image=depth_image, gripper_start=gripper_start)
+    if seed_base is not None:
+        ecfg = dataclasses.replace(ecfg, seed_base=seed_base)
     env = make_env(task, ecfg.env_settings())
     probe = BetweenBlocks(env) if task == "block_pull" else None
     runner = EpisodeRunner(env, task, "imitation", None if probe is None else probe.step,

@@ -24,7 +24,7 @@ from typing import Annotated, Any
 import numpy as np
 import tyro
 
-from mea_tools.bench import stats
+from mea_tools.bench import best_policy, stats
 from mea_tools.bench.harness import free_port
 from mea_tools.bench.reference import PUBLIC_UPDATE_SECONDS
 from mea_tools.bench.report import emit
@@ -146,6 +146,8 @@ class LearningBenchConfig:
     """Held-out episodes per evaluation (0: the preset's)."""
     final_eval_episodes: int = 0
     """Held-out episodes of the evaluation at the budget (0: the preset's)."""
+    best_episodes: int = 0
+    """Also play each run's best evaluated weights on this many fresh held-out seeds (0: off)."""
     out: Path = Path("runs/bench-learning")
     """Directory holding one run directory per (variant, seed), the curves PNG and the result."""
     timeout_minutes: float = 0.0
@@ -215,6 +217,8 @@ def _check_options(cfg: LearningBenchConfig) -> None:
         raise _refuse(f"--{negative[0].replace('_', '-')} must be >= 0 (0: the preset's)")
     if cfg.parallel < 1:
         raise _refuse(f"--parallel must be >= 1, not {cfg.parallel}")
+    if cfg.best_episodes < 0:
+        raise _refuse(f"--best-episodes must be >= 0 (0: off), not {cfg.best_episodes}")
     if cfg.envs_per_actor < 1:
         raise _refuse(f"--envs-per-actor must be >= 1, not {cfg.envs_per_actor}")
     if cfg.learner_device != "cpu":
@@ -636,6 +640,7 @@ def summarize(
     learner: str,
     boot: stats.Bootstrap,
     protocol: Protocol | None = None,
+    best: dict[str, dict[str, Any] | None] | None = None,
 ) -> dict[str, list[dict[str, Any]]]:
     """The benchmark's sections from finished (or partly finished) run directories, and its PNGs in
     ``out`` (None: none).
@@ -643,7 +648,8 @@ def summarize(
     ``comparison``: success at the budget per variant; ``learning speed``: AUC, improvement timestep
     and wall time; ``against the first arm``: probability of improvement and the noise verdict;
     ``against the public reference`` with a protocol; ``runs``: one row per run; and the training
-    loop (whole-stack env steps/s) against the public Equi-RSAC code."""
+    loop (whole-stack env steps/s) against the public Equi-RSAC code. ``best`` (run name -> its
+    ``best_policy.measure``) adds each run's best weights on fresh seeds, and their mean per arm."""
     loaded = []
     for variant, dirs in runs.items():
         for d in dirs:
@@ -653,6 +659,11 @@ def summarize(
                 _log(f"{d.name}: {exc}")
     groups = {g.label: g for g in group_runs(loaded)}
     per_run = {v: [run_row(v, d, budget) for d in dirs] for v, dirs in runs.items()}
+    if best is not None:
+        for row in (r for rows in per_run.values() for r in rows):
+            b = best.get(row["run"])
+            row["best weights (env steps)"] = None if b is None else b["env steps"]
+            row["best weights on fresh seeds"] = None if b is None else b["success"]
     at_budget = {v: [r["success at budget"] for r in rows if r["success at budget"] is not None]
                  for v, rows in per_run.items()}  # fmt: skip
     comparison, speed, loop = [], [], []
@@ -675,6 +686,11 @@ def summarize(
             "success at budget (std)": None if arm is None else arm.std,
             "grasp score at budget (mean)": _mean_std(scores)[0],
         })  # fmt: skip
+        if best is not None:
+            fresh = stats.mean_interval([r["best weights on fresh seeds"] for r in rows
+                                         if r["best weights on fresh seeds"] is not None], boot)  # fmt: skip
+            comparison[-1]["best weights on fresh seeds (mean)"] = None if fresh is None else fresh.point
+            comparison[-1]["best weights on fresh seeds (95% CI)"] = _ci(fresh)
         speed.append({
             "variant": variant, "AUC (mean)": None if auc is None else auc.point, "AUC (95% CI)": _ci(auc),
             "AUC (std)": _mean_std(aucs)[1],
@@ -746,11 +762,15 @@ def run(cfg: LearningBenchConfig) -> dict:
     RunConfig, _ = _mea_run()
     learner = s.learner or f"{RunConfig().learner_preset} (mea run's default)"
     boot = stats.Bootstrap(reps=cfg.bootstrap_reps, seed=cfg.bootstrap_seed)
-    sections = summarize(cfg.task, runs, s.budget, out, learner, boot, s.protocol)
+    best = None
+    if cfg.best_episodes:
+        best = {d.name: best_policy.measure(d, cfg.best_episodes) for dirs in runs.values() for d in dirs}
+    sections = summarize(cfg.task, runs, s.budget, out, learner, boot, s.protocol, best)
     meta = {"preset": cfg.preset, "protocol": cfg.protocol or None, "task": cfg.task, "budget": s.budget,
             "seeds": s.seeds, "seed list (every arm)": list(s.seed_list), "demos": s.demos,
             "random_steps": s.random_steps, "learner": learner, "eval_every": s.eval_every,
             "eval_episodes": s.eval_episodes, "final_eval_episodes": s.final_eval_episodes,
+            "best_episodes": cfg.best_episodes,
             "parallel": cfg.parallel, "bootstrap": {"reps": boot.reps, "confidence": boot.confidence, "seed": boot.seed,
                           "method": "rliable stratified bootstrap, percentile"},
             "reference": None if s.protocol is None else s.protocol.reference_name,

@@ -329,6 +329,7 @@ def test_fixed_protocols_are_the_same_calibrations_on_the_public_start(tmp_path)
         ({"seeds": -1}, "--seeds must be >= 0"),
         ({"bootstrap_reps": 0}, "--bootstrap-reps must be >= 1"),
         ({"parallel": 0}, "--parallel must be >= 1, not 0"),
+        ({"best_episodes": -1}, "--best-episodes must be >= 0"),
         ({"envs_per_actor": 0}, "--envs-per-actor must be >= 1, not 0"),
         ({"learner_device": "gpu"}, "--learner-device must be cpu, cuda or cuda:N, not 'gpu'"),
     ],
