@@ -64,17 +64,14 @@ def measure(run_dir: Path, episodes: int, evaluate: Evaluate | None = None) -> d
 
 
 def play_fresh_seeds(run_dir: Path, version: int, first_seed: int, episodes: int) -> float:
-    """Version ``version`` of the run's weights (sealed with its key where it has one), on the run's
-    task and start, through the evaluator's ``EpisodeRunner``."""
+    """Version ``version`` of the run's weights (checked against its run's key where sealed), on the
+    run's task and start, through the evaluator's ``EpisodeRunner``."""
     # deferred: torch and pybullet (seconds to import), only where a policy plays
     from mea_tools.bench.imitation import evaluate
     from services.algorithms.policy import blob_observation
-    from services.common import run_key, weights_file
+    from services.learner import init_actor
 
-    key_file = run_dir / run_key.FILE_NAME
-    blob = weights_file.read(
-        weights_file.resolve(run_dir, version), run_key.load(key_file) if key_file.is_file() else None
-    )
+    _, blob = init_actor.read(run_dir, version)
     saved = json.loads((run_dir / "config.json").read_text())
     result = evaluate(blob, saved["task"], blob_observation(blob) == "depth", episodes,
                       saved.get("gripper_start", "random"), seed_base=first_seed)  # fmt: skip

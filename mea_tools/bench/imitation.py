@@ -19,6 +19,7 @@ import torch
 
 from mea_tools.bench.report import emit
 from proto.episode import Episode
+from proto.seeds import EVAL_SEED_BASE
 from proto.weights import WeightsBlob
 from services.actor.config import EXPERTS
 from services.actor.rollout import RolloutActor
@@ -206,13 +207,12 @@ def evaluate(
     depth_image: bool,
     episodes: int,
     gripper_start: str = "random",
-    seed_base: int | None = None,
+    seed_base: int = EVAL_SEED_BASE,
 ) -> dict[str, Any]:
-    """``blob``'s deterministic policy on ``episodes`` held-out seeds from ``seed_base`` (None: the
-    evaluator's first), in the evaluator's env through its ``EpisodeRunner``."""
-    ecfg = EvaluatorConfig(task=task, episodes=episodes, depth_image=depth_image, gripper_start=gripper_start)
-    if seed_base is not None:
-        ecfg = dataclasses.replace(ecfg, seed_base=seed_base)
+    """``blob``'s deterministic policy on ``episodes`` held-out seeds from ``seed_base`` (the
+    evaluator's first by default), in the evaluator's env through its ``EpisodeRunner``."""
+    ecfg = EvaluatorConfig(task=task, episodes=episodes, depth_image=depth_image, gripper_start=gripper_start,
+                           seed_base=seed_base)  # fmt: skip
     env = make_env(task, ecfg.env_settings())
     probe = BetweenBlocks(env) if task == "block_pull" else None
     runner = EpisodeRunner(env, task, "imitation", None if probe is None else probe.step,

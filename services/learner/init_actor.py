@@ -43,14 +43,14 @@ def _writer_key(path: Path) -> bytes | None:
     )
 
 
-def read(path: Path) -> tuple[Path, WeightsBlob]:
-    """The weights file ``path`` names (a file, or the newest in a run dir / weights folder) and its
-    blob, checked (seal with its run's key, digest); ValueError (``WeightsFileError``, ``RunKeyError``)
-    naming the problem."""
+def read(path: Path, version: int | None = None) -> tuple[Path, WeightsBlob]:
+    """The weights file ``path`` names (a file, or in a run dir / weights folder the one of ``version``,
+    None: the newest) and its blob, checked (seal with its run's key, digest); ValueError
+    (``WeightsFileError``, ``RunKeyError``) naming the problem."""
     if not Path(path).exists():
         raise weights_file.WeightsFileError(f"{path}: no such file or directory")
     try:
-        file = weights_file.resolve(Path(path))
+        file = weights_file.resolve(Path(path), version)
         return file, weights_file.read(file, _writer_key(file))
     except OSError as exc:
         raise weights_file.WeightsFileError(f"{path}: cannot read it ({exc.strerror or exc})") from None
