@@ -115,7 +115,8 @@ def test_actor_without_depth_image_refuses_a_depth_policy_and_runs_on(monkeypatc
     registries = spy_metrics(monkeypatch)
 
     def bad_weights() -> float:
-        return registries[0].get_sample_value("mea_actor_bad_weights_total") if registries else 0.0
+        # None until the actor has registered the counter (a loaded machine can ask before)
+        return (registries[0].get_sample_value("mea_actor_bad_weights_total") if registries else None) or 0.0
 
     cfg = _cfg(3, depth_image=False)
     result: dict = {}

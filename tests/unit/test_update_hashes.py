@@ -1,19 +1,27 @@
 """Behaviour pins of the learner's updates: 15 updates of the cpu-small SAC recipe (BC with the Q
 filter, shared encoder, return bound), of cpu-small-state (the state critic, BC without a shared
-encoder), of the smoke preset's plain twin (rsac: no BC, separate encoders) and of gasv2-smoke, from fixed seeds on a fixed synthetic replay, must leave exactly the
-state (networks, optimisers, temperature) and the update statistics they left when the hashes were
-recorded. A refactor of the learner that changes a bit of either fails here.
+encoder), of the smoke preset's plain twin (rsac: no BC, separate encoders) and of gasv2-smoke, from
+fixed seeds on a fixed synthetic replay, must leave exactly the state (networks, optimisers,
+temperature) and the update statistics they left when the hashes were recorded. A refactor of the
+learner that changes a bit of either fails here.
 
-The hashes are of torch 2.13 on this project's CPU build with one torch thread (``RECORDED_ON``);
-another torch or another CPU kernel set rounds differently (torch 2.11 on an H200 host's CPU gives
-other hashes), so elsewhere only the statistics' names are compared: rerecord the hashes there, from
-the commit that recorded these, with ``python -m tests.unit.test_update_hashes``."""
+torch picks its CPU kernels by what the CPU offers (MKL's GEMM, oneDNN's and NNPACK's convolutions,
+ATen's vector width), and two x86 machines that both report AVX512 still round differently. So the
+updates run in a child process on kernels that give the same bits on any x86 CPU: MKL in its
+conditional-reproducibility mode (``MKL_CBWR=COMPATIBLE``), ATen's scalar kernels, oneDNN and NNPACK
+off, one thread. Only another torch rounds differently (torch 2.11 on a GPU host); there only the
+statistics' names are compared. Rerecord with ``python -m tests.unit.test_update_hashes``."""
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
+import os
+import subprocess
+import sys
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,24 +37,31 @@ from tests.helpers.learner import learner_episode, policy_images
 pytestmark = [pytest.mark.unit, pytest.mark.timeout(300)]
 
 UPDATES = 15
-RECORDED_ON = ("2.13.0+cpu", "AVX512")
-"""torch version and CPU kernel set (``torch.backends.cpu.get_cpu_capability``) of the hashes."""
+RECORDED_ON = "2.13.0+cpu"
+"""The torch version of the hashes."""
+REPRODUCIBLE_KERNELS = {
+    "MKL_CBWR": "COMPATIBLE",
+    "ATEN_CPU_CAPABILITY": "default",
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+}
+"""The child's environment: read when torch loads, so they cannot be set in this process."""
 EXPECTED = {
     "cpu-small": (
-        "31ebdcae3d04135edd354848b3701a5c02a872cd2d4eacb808ce6fe3542c9457",
-        "3846f83ff49adb88d056e15ac13df5a32488eaa4205b65a9de819a62ae062f57",
+        "8831471e14cd280a9d2339ffd72b98d7f0d09a776f2e4984c62848c8906f3e26",
+        "c6b798710e32268868ce62bf0be1d04bb1ad5d063bbe145d40f2ce1d6339bf01",
     ),
     "cpu-small-state": (
-        "c7cc3b7cda798c62e423f445ca28e6bf2330e1dc3c464e5a077e66a2de74827d",
-        "ee29fc716f458be204e255825038b2882c0f47705cd30066e0210056069cd7d5",
+        "becc02952ff0dc8f6cb8810d57d08f62ea3dce5cadafe474e577d2f791f9d35f",
+        "be1eca3fdc52092876432cf40befb9050eb0a8423c96ae5dc6c8b5c38c6d0c6a",
     ),
     "smoke/rsac": (
-        "4a02683277d3a221e444899d2560817f56ac561b80fff77babaa821ae5050644",
-        "d4c1171032f1d6148eb59b4e5473671c02a3b8765ee912b142483ec3cc9f5bf3",
+        "92deac40d041336e3dff6353cc6e89e08d64ef1f0e0c5fda9ee08066d290c2ed",
+        "5821b5e3afb131a6e11bd1d5040b70933757a88df58f64cf4557a1d49d45ca95",
     ),
     "gasv2-smoke": (
-        "e133b550f90c63d62a8f583f4f38ed6863ab3fca39abcf68ce439e53bc73719c",
-        "144cbe3765b72287fb3e363ce26fd37f9cd38da32e07f151efb0db368c3ebc5d",
+        "85d2569078fed660313962f69a7f76fe49144cd6c982c7e339815e35da5d1898",
+        "766578005e512623fa8b40fc9f0f90a947d93f27f211832ab1f464ba4e316288",
     ),
 }
 """Preset -> (sha256 of the trainer's state after UPDATES updates, sha256 of their statistics)."""
@@ -156,7 +171,7 @@ def gasv2_episodes() -> list[Episode]:
 
 def run_updates(case: str) -> tuple[str, str, frozenset[str]]:
     """(state hash, statistics hash, statistic names) after UPDATES updates of the trainer of ``case``:
-    a preset, or ``preset/algorithm``."""
+    a preset, or ``preset/algorithm``. Changes this process's torch settings: run it in a child."""
     preset, _, algorithm = case.partition("/")
     cfg = PRESETS[preset]
     if algorithm:
@@ -171,33 +186,72 @@ def run_updates(case: str) -> tuple[str, str, frozenset[str]]:
         cfg = dataclasses.replace(cfg, algorithm=algo, batch_size=4, seq_len=12, replay_capacity=1_000)
         episodes = sac_episodes()
     cfg = dataclasses.replace(cfg, samples_per_insert=10.0, min_steps=1, error_buffer=1_000.0, seed=3)
-    threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    try:
-        trainer = build_trainer(cfg)
-        for ep in episodes:
-            trainer.insert(ep)
-        infos = []
-        for _ in range(UPDATES):
-            info = trainer.step()
-            assert info is not None
-            infos.append(info)
-        names = frozenset().union(*infos)
-        return state_hash(trainer.agent.state_dict()), metrics_hash(infos), names
-    finally:
-        torch.set_num_threads(threads)
+    torch.backends.mkldnn.enabled = False  # its convolutions pick code paths by CPU
+    torch.backends.nnpack.set_flags(False)
+    trainer = build_trainer(cfg)
+    for ep in episodes:
+        trainer.insert(ep)
+    infos = []
+    for _ in range(UPDATES):
+        info = trainer.step()
+        assert info is not None
+        infos.append(info)
+    names = frozenset().union(*infos)
+    return state_hash(trainer.agent.state_dict()), metrics_hash(infos), names
+
+
+def run_in_child() -> dict[str, tuple[str, str, frozenset[str]]]:
+    """``run_updates`` of every case, in a child process on the reproducible kernels."""
+    env = {**os.environ, **REPRODUCIBLE_KERNELS}
+    out = subprocess.run(
+        [sys.executable, "-m", "tests.unit.test_update_hashes", "--json"],
+        env=env,
+        cwd=Path(__file__).resolve().parents[2],  # the repository root, where ``tests`` imports
+        capture_output=True,
+        text=True,
+        timeout=240,
+        check=False,
+    )
+    assert out.returncode == 0, out.stderr[-4000:]
+    return {
+        case: (state, stats, frozenset(names))
+        for case, (state, stats, names) in json.loads(out.stdout.splitlines()[-1]).items()
+    }
+
+
+@pytest.fixture(scope="module")
+def child_results() -> dict[str, tuple[str, str, frozenset[str]]]:
+    return run_in_child()
+
+
+def test_the_child_runs_on_the_reproducible_kernels() -> None:
+    """What makes the hashes portable: without these settings two AVX512 machines disagree."""
+    env = {**os.environ, **REPRODUCIBLE_KERNELS}
+    code = "import torch; print(torch.backends.cpu.get_cpu_capability())"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "DEFAULT"
 
 
 @pytest.mark.parametrize("case", sorted(EXPECTED))
-def test_updates_leave_the_recorded_state(case: str) -> None:
-    state, stats, names = run_updates(case)
+def test_updates_leave_the_recorded_state(case: str, child_results) -> None:
+    state, stats, names = child_results[case]
     assert names == METRICS[case]
-    here = (torch.__version__, torch.backends.cpu.get_cpu_capability())
-    if here != RECORDED_ON:
-        pytest.skip(f"the hashes are torch {RECORDED_ON[0]} {RECORDED_ON[1]}'s, this is {here[0]} {here[1]}")
+    if torch.__version__ != RECORDED_ON:
+        pytest.skip(f"the hashes are torch {RECORDED_ON}'s, this is {torch.__version__}")
     assert (state, stats) == EXPECTED[case], f"{case}: {state}, {stats}"
 
 
 if __name__ == "__main__":
-    for name in sorted(EXPECTED):
-        print(name, run_updates(name))
+    results = {name: run_updates(name) for name in sorted(EXPECTED)}
+    if sys.argv[1:] == ["--json"]:
+        print(
+            json.dumps(
+                {name: [state, stats, sorted(names)] for name, (state, stats, names) in results.items()}
+            )
+        )
+    else:
+        # rerecording: run under the child's environment, e.g.
+        # MKL_CBWR=COMPATIBLE ATEN_CPU_CAPABILITY=default python -m tests.unit.test_update_hashes
+        for name, (state, stats, _) in results.items():
+            print(name, (state, stats))
