@@ -201,12 +201,15 @@ def run_updates(case: str) -> tuple[str, str, frozenset[str]]:
     return state_hash(trainer.agent.state_dict()), metrics_hash(infos), names
 
 
+def child_env() -> dict[str, str]:
+    return {**os.environ, **REPRODUCIBLE_KERNELS}
+
+
 def run_in_child() -> dict[str, tuple[str, str, frozenset[str]]]:
     """``run_updates`` of every case, in a child process on the reproducible kernels."""
-    env = {**os.environ, **REPRODUCIBLE_KERNELS}
     out = subprocess.run(
         [sys.executable, "-m", "tests.unit.test_update_hashes", "--json"],
-        env=env,
+        env=child_env(),
         cwd=Path(__file__).resolve().parents[2],  # the repository root, where ``tests`` imports
         capture_output=True,
         text=True,
@@ -227,9 +230,10 @@ def child_results() -> dict[str, tuple[str, str, frozenset[str]]]:
 
 def test_the_child_runs_on_the_reproducible_kernels() -> None:
     """What makes the hashes portable: without these settings two AVX512 machines disagree."""
-    env = {**os.environ, **REPRODUCIBLE_KERNELS}
     code = "import torch; print(torch.backends.cpu.get_cpu_capability())"
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=child_env(), capture_output=True, text=True, check=True
+    )
     assert out.stdout.strip() == "DEFAULT"
 
 
@@ -243,15 +247,13 @@ def test_updates_leave_the_recorded_state(case: str, child_results) -> None:
 
 
 if __name__ == "__main__":
-    results = {name: run_updates(name) for name in sorted(EXPECTED)}
-    if sys.argv[1:] == ["--json"]:
+    if sys.argv[1:] == ["--json"]:  # the child's side of run_in_child
+        results = {name: run_updates(name) for name in sorted(EXPECTED)}
         print(
             json.dumps(
                 {name: [state, stats, sorted(names)] for name, (state, stats, names) in results.items()}
             )
         )
-    else:
-        # rerecording: run under the child's environment, e.g.
-        # MKL_CBWR=COMPATIBLE ATEN_CPU_CAPABILITY=default python -m tests.unit.test_update_hashes
-        for name, (state, stats, _) in results.items():
+    else:  # rerecording: through the child too, so the hashes are the portable ones
+        for name, (state, stats, _) in run_in_child().items():
             print(name, (state, stats))
