@@ -96,12 +96,14 @@ PROTOCOLS: dict[str, Protocol] = {
         reference={"equirsac": {40_000: 1.0}, "equiobs": {40_000: 1.0}},
     ),
     # the public reproduction linhongbin-ws/rgbd-sym: 15 demos, mean success of its baseline and MEA
-    # arm. Both ran the public Equi-RSAC code, whose policy sees its depth image: the baseline is
-    # `equirsac` here. `equiobs` (the paper's projection, which the paper finds at or above Equi-RSAC)
-    # is held to the same curve, and `mea` (MEA on that projection) to the MEA arm's.
+    # arm. Both ran its fork of the public Equi-RSAC learner with `obs_type: occup`: the policy sees a
+    # top-down image of occupancy voxels from the point cloud (the paper's kind of observation), not
+    # the public code's depth render. So `equiobs` is its baseline here and `mea` its MEA arm;
+    # `equirsac` (the depth render) is held to the same baseline curve. Its pool also held 20 random
+    # episodes; this protocol has none, as every run measured with it so far.
     "public15": Protocol(
         variants=("equirsac", "equiobs", "mea"), env_steps=25_000, seeds=3, demos=15, random_steps=None,
-        eval_every=2_500, reference_name="public reproduction (linhongbin-ws/rgbd-sym, depth-image baseline)",
+        eval_every=2_500, reference_name="public reproduction (linhongbin-ws/rgbd-sym, occupancy-image baseline)",
         reference={"equirsac": _PUBLIC15_BASELINE, "equiobs": _PUBLIC15_BASELINE,
                    "mea": dict(zip(_PUBLIC15_STEPS, (0.00, 0.33, 0.17, 0.53, 0.67), strict=True))},
     ),
