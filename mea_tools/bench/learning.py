@@ -138,6 +138,9 @@ class LearningBenchConfig:
     """Actor processes per run."""
     envs_per_actor: int = 1
     """Envs each actor steps in lockstep (`mea run --envs-per-actor`)."""
+    learner_preset: str = ""
+    """Every run's `mea run --learner-preset` (empty: the preset's or the protocol's); `paper` with a
+    protocol calibrates the public widths and gradient budget on its data."""
     learner_device: str = "cpu"
     """Every run's learner device: cpu, cuda or cuda:N (given again on resume: it is this machine's)."""
     parallel: int = 1
@@ -244,6 +247,18 @@ def _check_options(cfg: LearningBenchConfig) -> None:
                           "leave --preset at cpu-small")  # fmt: skip
 
 
+def _check_learner_preset(name: str, variant: str) -> None:
+    """Refuse before training a ``--learner-preset`` that the variant's algorithm has no row for."""
+    from services.learner.config import learner_presets  # deferred: torch
+    from services.variants import variant as run_variant
+
+    choices = learner_presets(run_variant(variant).algorithm)
+    if name not in choices:
+        raise _refuse(
+            f"--learner-preset {name!r} has no {variant} learner; choose one of {', '.join(choices)}"
+        )
+
+
 def settings(cfg: LearningBenchConfig) -> Settings:
     _check_options(cfg)
     proto = PROTOCOLS.get(cfg.protocol)
@@ -255,6 +270,8 @@ def settings(cfg: LearningBenchConfig) -> Settings:
             check_task(VARIANTS[v][1], cfg.task)
         except ValueError as exc:
             raise SystemExit(f"mea bench learning: {exc}") from None
+        if cfg.learner_preset:
+            _check_learner_preset(cfg.learner_preset, VARIANTS[v][1])
     p = dict(PRESETS[cfg.preset])
     if cfg.task in TASK_VARIANTS:
         p.update(SURGICAL_PRESETS[cfg.preset])
@@ -266,7 +283,7 @@ def settings(cfg: LearningBenchConfig) -> Settings:
         seeds=cfg.seeds or p["seeds"],
         variants=tuple(variants),
         demos=cfg.demos or p.get("demos", 2),
-        learner=p["learner"],
+        learner=cfg.learner_preset or p["learner"],
         eval_every=cfg.eval_every or p["eval_every"],
         eval_episodes=cfg.eval_episodes or p["eval_episodes"],
         final_eval_episodes=cfg.final_eval_episodes or p["final_eval_episodes"],

@@ -320,6 +320,19 @@ def test_fixed_protocols_are_the_same_calibrations_on_the_public_start(tmp_path)
         assert dataclasses.replace(ours, gripper_start="random", run_dir=plain.run_dir) == plain
 
 
+def test_a_learner_preset_replaces_the_protocols_for_every_run_and_is_recorded(tmp_path):
+    cfg = LearningBenchConfig(
+        out=tmp_path, protocol="public15-fixed", variants=("equiobs",), learner_preset="paper"
+    )
+    s = settings(cfg)
+    assert s.learner == "paper" and (s.demos, s.budget, s.gripper_start) == (15, 25_000, "fixed")
+    parsed = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, "equiobs", 0, s), "mea run", "")
+    base = settings(dataclasses.replace(cfg, learner_preset=""))
+    plain = config.parse(RunConfig, RUN_PRESETS, run_args(cfg, "equiobs", 0, base), "mea run", "")
+    assert (plain.learner_preset, parsed.learner_preset) == ("cpu-small", "paper")
+    assert dataclasses.replace(parsed, learner_preset="cpu-small") == plain  # nothing else changes
+
+
 @pytest.mark.parametrize(
     ("options", "says"),
     [
@@ -332,6 +345,8 @@ def test_fixed_protocols_are_the_same_calibrations_on_the_public_start(tmp_path)
         ({"best_episodes": -1}, "--best-episodes must be >= 0"),
         ({"envs_per_actor": 0}, "--envs-per-actor must be >= 1, not 0"),
         ({"learner_device": "gpu"}, "--learner-device must be cpu, cuda or cuda:N, not 'gpu'"),
+        ({"learner_preset": "gasv2-smoke"}, "--learner-preset 'gasv2-smoke' has no equirsac learner"),
+        ({"task": "surgical_grasp_any", "learner_preset": "cpu-small-state"}, "has no gasv2 learner"),
     ],
 )
 def test_bad_options_are_refused_in_one_line_before_anything_is_written(tmp_path, options, says):
