@@ -114,9 +114,9 @@ def learner_preset(run: RunConfig) -> str:
 
 def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any:
     """The run's learner preset (``learner_preset``) with the variant's observation and the task's
-    group for its algorithm (``AlgorithmConfig.for_run``), the run's budget and seed, one torch thread
-    (it shares the cores with actors and augmenter; two OpenMP threads on a busy 2-core machine wait
-    on each other), state under RUN_DIR/learner, resumed on --resume. ``learner_args`` change the
+    group for its algorithm (``AlgorithmConfig.for_run``), the run's budget, seed and torch threads
+    (``learner_threads``, one by default: it shares the cores with actors and augmenter, and two OpenMP
+    threads on a busy 2-core machine wait on each other), state under RUN_DIR/learner, resumed on --resume. ``learner_args`` change the
     preset before all that, so the run's own settings win."""
     # the run's device first too: a learner flag that needs a GPU (--cuda-graphs) is checked against it
     on_device = dataclasses.replace(LEARNER_PRESETS[learner_preset(run)], device=run.learner_device)
@@ -124,7 +124,7 @@ def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any
     return dataclasses.replace(
         preset,
         algorithm=preset.algorithm.for_run(variant(run.variant).observation, network_group(run.task)),
-        threads=1,
+        threads=run.learner_threads,
         device=run.learner_device,
         max_env_steps=run.env_steps,
         seed=run.seed,

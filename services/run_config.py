@@ -77,6 +77,8 @@ class RunConfig:
     """Learner preset: cpu-small, cpu-small-state, paper or smoke."""
     learner_device: str = "cpu"
     """torch device of the learner: cpu, cuda or cuda:N."""
+    learner_threads: int = 1
+    """torch threads of the learner (1: it shares the cores with actors and augmenter; 0: torch's default)."""
     seed: int = 0
     """Run seed: actors' training seeds, augmentation, networks (evaluation seeds are fixed)."""
     eval_every: int = 1000
@@ -216,6 +218,10 @@ class RunConfig:
         check_task(self.variant, self.task)
         self._check_learner_preset()
         check_device(self.learner_device, "--learner-device")
+        if self.learner_threads < 0:
+            raise ValueError(
+                f"--learner-threads must be >= 0 (0: torch's default), not {self.learner_threads}"
+            )
         if (self.demos is not None and self.demos < 0) or (
             self.random_steps is not None and self.random_steps < 0
         ):
@@ -267,8 +273,8 @@ def recording_metadata(cfg: RunConfig) -> dict[str, str]:
 
 
 _MACHINE_FIELDS = ("listen", "connect", "metrics_port", "metrics_addr", "duration_seconds", "stop_grace_seconds",
-                   "log_format", "final_eval_seconds", "in_process", "zenoh_config", "learner_device", "track",
-                   "wandb_mode")  # fmt: skip
+                   "log_format", "final_eval_seconds", "in_process", "zenoh_config", "learner_device", "learner_threads",
+                   "track", "wandb_mode")  # fmt: skip
 """Fields a resumed run takes from the command line rather than from the run's saved config."""
 
 

@@ -141,6 +141,8 @@ class LearningBenchConfig:
     learner_preset: str = ""
     """Every run's `mea run --learner-preset` (empty: the preset's or the protocol's); `paper` with a
     protocol calibrates the public widths and gradient budget on its data."""
+    learner_threads: int = 1
+    """Every run's `mea run --learner-threads` (given again on resume: it is this machine's)."""
     learner_device: str = "cpu"
     """Every run's learner device: cpu, cuda or cuda:N (given again on resume: it is this machine's)."""
     parallel: int = 1
@@ -233,6 +235,8 @@ def _check_options(cfg: LearningBenchConfig) -> None:
             check_device(cfg.learner_device, "--learner-device")
         except ValueError as exc:
             raise _refuse(str(exc)) from None
+    if cfg.learner_threads < 0:
+        raise _refuse(f"--learner-threads must be >= 0 (0: torch's default), not {cfg.learner_threads}")
     if cfg.bootstrap_reps < 1:
         raise _refuse(f"--bootstrap-reps must be >= 1, not {cfg.bootstrap_reps}")
     unknown = set(cfg.variants) - set(VARIANTS)
@@ -333,7 +337,7 @@ def run_args(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> 
     evaluation settings; the learner preset only where the benchmark's preset names one."""
     args = ["--task", cfg.task, "--demos", str(s.demos), *VARIANTS[variant], "--seed", str(seed),
             "--actors", str(cfg.actors), "--envs-per-actor", str(cfg.envs_per_actor),
-            "--learner-device", cfg.learner_device, "--env-steps", str(s.budget), "--eval-every", str(s.eval_every),
+            "--learner-device", cfg.learner_device, "--learner-threads", str(cfg.learner_threads), "--env-steps", str(s.budget), "--eval-every", str(s.eval_every),
             "--eval-episodes", str(s.eval_episodes), "--final-eval-episodes", str(s.final_eval_episodes)]  # fmt: skip
     if s.random_steps is not None:
         args += ["--random-steps", str(s.random_steps)]
@@ -456,7 +460,14 @@ def train(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> Pat
         return run_dir
     if (run_dir / "config.json").exists():  # an interrupted run: continue it with its saved settings
         # and this machine's learner device (a resume takes the device from its command line)
-        args = ["--resume", str(run_dir), "--learner-device", cfg.learner_device]
+        args = [
+            "--resume",
+            str(run_dir),
+            "--learner-device",
+            cfg.learner_device,
+            "--learner-threads",
+            str(cfg.learner_threads),
+        ]
     else:
         args = run_args(cfg, variant, seed, s)
     with _PORTS.hold() as port:

@@ -235,13 +235,20 @@ def test_interrupted_runs_are_resumed_new_ones_started_and_their_wall_time_added
     monkeypatch.setattr(subprocess, "Popen", FakeProc)
     out = tmp_path / "bench"
     unfinished = make_run(out, "equiobs", 0, [(0, 0.0), (10_000, 0.2)], wall=100.0)  # stopped half way
-    run(LearningBenchConfig(out=out, variants=("equiobs", "mea"), seeds=1, json=True, bootstrap_reps=REPS))
+    run(LearningBenchConfig(out=out, variants=("equiobs", "mea"), seeds=1, json=True, bootstrap_reps=REPS,
+                            learner_threads=2))  # fmt: skip
     resume_cmd, new_cmd = FakeProc.commands
     assert resume_cmd[resume_cmd.index("run") + 1 :][:2] == ["--resume", str(unfinished)]
     assert "--variant" not in resume_cmd  # the saved settings, not new ones
     # the learner device is the machine's: a resume names it as a new run does
     assert resume_cmd[resume_cmd.index("--learner-device") + 1] == "cpu"
     assert new_cmd[new_cmd.index("--learner-device") + 1] == "cpu"
+    # and so are the learner's torch threads
+    assert (
+        resume_cmd[resume_cmd.index("--learner-threads") + 1]
+        == new_cmd[new_cmd.index("--learner-threads") + 1]
+        == "2"
+    )
     assert new_cmd[new_cmd.index("--variant") + 1] == "mea" and "--resume" not in new_cmd
     assert new_cmd[new_cmd.index("--run-dir") + 1] == str(out / "block_pull-mea-s0")
     wall = json.loads((unfinished / learning.WALL_FILE).read_text())
@@ -345,6 +352,7 @@ def test_a_learner_preset_replaces_the_protocols_for_every_run_and_is_recorded(t
         ({"best_episodes": -1}, "--best-episodes must be >= 0"),
         ({"envs_per_actor": 0}, "--envs-per-actor must be >= 1, not 0"),
         ({"learner_device": "gpu"}, "--learner-device must be cpu, cuda or cuda:N, not 'gpu'"),
+        ({"learner_threads": -1}, "--learner-threads must be >= 0 .*not -1"),
         ({"learner_preset": "gasv2-smoke"}, "--learner-preset 'gasv2-smoke' has no equirsac learner"),
         ({"task": "surgical_grasp_any", "learner_preset": "cpu-small-state"}, "has no gasv2 learner"),
     ],

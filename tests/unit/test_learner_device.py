@@ -32,6 +32,7 @@ from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
 from services.learner import checkpoint, init_actor
 from services.learner.config import LearnerConfig, build_trainer, check_device
+from services.plan import config_for
 from services.run_config import RunConfig, read_resume
 from tests.helpers.learner import SIZE, TINY_NET, learner_episode, start_learner, tiny_learner_config
 
@@ -165,6 +166,15 @@ def test_a_resumed_run_takes_the_learner_device_from_the_command_line(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps(saved))
     resumed = read_resume(RunConfig(resume=tmp_path, learner_device="cpu"), given={"learner_device"})
     assert resumed.config.learner_device == "cpu" and resumed.config.resumes == 1
+    # so are its torch threads, whatever the run was started with (a config.json from before the
+    # setting existed included)
+    del saved["learner_threads"]
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    two = read_resume(RunConfig(resume=tmp_path, learner_threads=2), given={"learner_threads"})
+    assert two.config.learner_threads == 2 and config_for(two.config, tmp_path, "learner", 0).threads == 2
+    assert config_for(RunConfig(), tmp_path, "learner", 0).threads == 1  # by default one: it shares the cores
+    with pytest.raises(ValueError, match=r"^--learner-threads must be >= 0"):
+        RunConfig(learner_threads=-1)
     with pytest.raises(ValueError, match="--task cannot change on --resume"):
         read_resume(RunConfig(resume=tmp_path, task="block_pick"), given={"task", "learner_device"})
 
