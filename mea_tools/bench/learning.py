@@ -139,10 +139,9 @@ class LearningBenchConfig:
     envs_per_actor: int = 1
     """Envs each actor steps in lockstep (`mea run --envs-per-actor`)."""
     learner_preset: str = ""
-    """Every run's `mea run --learner-preset` (empty: the preset's or the protocol's); `paper` with a
-    protocol calibrates the public widths and gradient budget on its data."""
+    """Every run's `mea run --learner-preset` (empty: the preset's or the protocol's)."""
     learner_threads: int = 1
-    """Every run's `mea run --learner-threads` (given again on resume: it is this machine's)."""
+    """Every run's `mea run --learner-threads` (given again on resume)."""
     learner_device: str = "cpu"
     """Every run's learner device: cpu, cuda or cuda:N (given again on resume: it is this machine's)."""
     parallel: int = 1
