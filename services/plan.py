@@ -115,9 +115,9 @@ def learner_preset(run: RunConfig) -> str:
 def learner_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> Any:
     """The run's learner preset (``learner_preset``) with the variant's observation and the task's
     group for its algorithm (``AlgorithmConfig.for_run``), the run's budget, seed and torch threads
-    (``learner_threads``, one by default: it shares the cores with actors and augmenter, and two OpenMP
-    threads on a busy 2-core machine wait on each other), state under RUN_DIR/learner, resumed on --resume. ``learner_args`` change the
-    preset before all that, so the run's own settings win."""
+    (``learner_threads``, one by default: it shares the cores with actors and augmenter, and two
+    OpenMP threads on a busy 2-core machine wait on each other), state under RUN_DIR/learner, resumed
+    on --resume. ``learner_args`` change the preset before all that, so the run's own settings win."""
     # the run's device first too: a learner flag that needs a GPU (--cuda-graphs) is checked against it
     on_device = dataclasses.replace(LEARNER_PRESETS[learner_preset(run)], device=run.learner_device)
     preset = override(on_device, run.learner_args, "--learner-args")

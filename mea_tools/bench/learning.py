@@ -324,19 +324,26 @@ def finished(run_dir: Path, budget: int) -> bool:
     return budget_record(_history(run_dir), budget) is not None
 
 
+def machine_args(cfg: LearningBenchConfig) -> list[str]:
+    """This machine's `mea run` settings, given to a new run and again to a resumed one (a resume takes
+    them from its command line, not from the run's saved config)."""
+    return ["--learner-device", cfg.learner_device, "--learner-threads", str(cfg.learner_threads)]
+
+
 # Each (variant, seed) is one whole `mea run` (its own processes and Zenoh router on a free 127.0.0.1
 # port, its own run directory ``OUT/<task>-<variant>-s<seed>``), one after another, so every run gets
 # the machine to itself; ``--parallel P`` trains up to P at once (``train_all``). Every arm runs the same seeds 0..n-1 (paired by seed). A run gets exactly
 # `make run`'s recipe (``mea run --task T --demos 2`` and `mea run`'s defaults) plus the variant, seed,
-# env-step budget and evaluation settings of the preset; only the ``paper`` preset changes the learner
-# (``--learner-preset paper``). ``--protocol`` names a calibration against public numbers instead
+# env-step budget and evaluation settings of the preset; only the ``paper`` preset (``--learner-preset
+# paper``) or the benchmark's own ``--learner-preset`` changes the learner. ``--protocol`` names a calibration against public numbers instead
 # (``PROTOCOLS``: its data, arms, budget and seeds; its runs under ``OUT/<protocol>``).
 def run_args(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> list[str]:
     """`mea run` arguments of a new run: `make run`'s recipe plus this run's variant, seed, budget and
-    evaluation settings; the learner preset only where the benchmark's preset names one."""
+    evaluation settings; the learner preset only where the benchmark's preset or --learner-preset
+    names one."""
     args = ["--task", cfg.task, "--demos", str(s.demos), *VARIANTS[variant], "--seed", str(seed),
-            "--actors", str(cfg.actors), "--envs-per-actor", str(cfg.envs_per_actor),
-            "--learner-device", cfg.learner_device, "--learner-threads", str(cfg.learner_threads), "--env-steps", str(s.budget), "--eval-every", str(s.eval_every),
+            "--actors", str(cfg.actors), "--envs-per-actor", str(cfg.envs_per_actor), *machine_args(cfg),
+            "--env-steps", str(s.budget), "--eval-every", str(s.eval_every),
             "--eval-episodes", str(s.eval_episodes), "--final-eval-episodes", str(s.final_eval_episodes)]  # fmt: skip
     if s.random_steps is not None:
         args += ["--random-steps", str(s.random_steps)]
@@ -458,15 +465,7 @@ def train(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> Pat
         _log(f"{run_dir.name}: finished earlier, reused")
         return run_dir
     if (run_dir / "config.json").exists():  # an interrupted run: continue it with its saved settings
-        # and this machine's learner device (a resume takes the device from its command line)
-        args = [
-            "--resume",
-            str(run_dir),
-            "--learner-device",
-            cfg.learner_device,
-            "--learner-threads",
-            str(cfg.learner_threads),
-        ]
+        args = ["--resume", str(run_dir), *machine_args(cfg)]  # and this machine's
     else:
         args = run_args(cfg, variant, seed, s)
     with _PORTS.hold() as port:
