@@ -30,6 +30,11 @@ BENCHES: dict[str, tuple[str, str, str]] = {
         "LearningBenchConfig",
         "train EquiRSAC / EquiObs / MEA variants: success at budget, improvement timestep, AUC, wall time, curves",
     ),
+    "critic": (
+        "mea_tools.bench.critic",
+        "CriticBenchConfig",
+        "a run's critic along its replay: Q of the recorded, turned, reversed, random and policy actions per step",
+    ),
     "compare": (
         "mea_tools.bench.compare",
         "CompareBenchConfig",

@@ -78,6 +78,21 @@ class SequenceReplay(ReplayStorage):
         slots = self._draw_episodes(batch_size, rng, demo_fraction, successes_as_demos)
         return self._gather(slots, trim, successes_as_demos)
 
+    def slots(self, *, demo: bool | None = None, success: bool | None = None) -> np.ndarray:
+        """Table slots of the stored episodes, oldest first: those that are (``demo``) demonstrations
+        or not and that succeeded (``success``) or not; None: either."""
+        live = self._order[: self._n]
+        keep = np.ones(live.size, bool)
+        if demo is not None:
+            keep &= self._ep_demo[live] == demo
+        if success is not None:
+            keep &= self._ep_success[live] == success
+        return live[keep]
+
+    def gather(self, slots: np.ndarray, trim: bool = True) -> SequenceBatch:
+        """The episodes at ``slots`` (``slots()``) as one batch, laid out as ``sample``'s."""
+        return self._gather(np.asarray(slots, dtype=np.int64), trim)
+
     def _draw_episodes(
         self, batch_size: int, rng: np.random.Generator, demo_fraction: float, successes_as_demos: bool
     ) -> np.ndarray:

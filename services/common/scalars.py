@@ -24,6 +24,7 @@ TAG_PREFIXES = (
     ("crr_keep", "diagnostics/"),
     ("bc_weight", "diagnostics/"),
     ("q_rank_gap", "diagnostics/"),
+    ("q_reverse_gap", "diagnostics/"),
     ("q_demo_minus_pi", "diagnostics/"),
 )
 

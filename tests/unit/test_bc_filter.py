@@ -4,6 +4,8 @@ update's reported gradient norms."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -47,6 +49,22 @@ def test_filter_keeps_where_the_demo_action_scores_higher():
     # a quarter turn sends (dx, dy) to (-dy, dx): the gap is the mean of dx + dy on demo steps
     gap = ((batch.actions[..., 1] + batch.actions[..., 2]) * demo).sum() / demo.sum()
     torch.testing.assert_close(c.rank_gap, gap)
+    # reversing the move negates dx: the gap is twice the mean dx on demo steps
+    torch.testing.assert_close(c.reverse_gap, 2 * (batch.actions[..., 1] * demo).sum() / demo.sum())
+
+
+def test_the_reverse_gap_ranks_a_vertical_move_that_the_quarter_turn_cannot():
+    batch = demo_batch()
+    B, L, _ = batch.actions.shape
+    critic = LinearQ([0.0, 0.0, 0.0, -1.0, 0.0])  # Q = -dz: a critic that prefers descending
+    feats = torch.zeros(B, L + 1, 3)
+    descents = batch.actions.clone()
+    descents[..., 1:3] = 0.0
+    descents[..., 3] = -0.5
+    down = dataclasses.replace(batch, actions=descents)
+    c = critique_demos(critic, feats, down, action_values(critic, feats, down, torch.zeros(B, L + 1, 5)))
+    assert float(c.rank_gap) == 0.0  # a quarter turn leaves a vertical move as it is
+    torch.testing.assert_close(c.reverse_gap, torch.tensor(1.0))  # -(-0.5) - (-(0.5))
 
 
 def test_filtered_bc_counts_only_kept_transitions_but_averages_over_all_demo_steps():
@@ -75,7 +93,15 @@ def test_update_reports_both_actor_gradient_norms_and_the_filter(share: bool):
     actor, critic, _ = nets(NET)
     sac = RecurrentSAC(actor, critic, SacSettings(bc_weight=1.0, bc_filter=True, share_encoder=share))
     info = sac.update(demo_batch())
-    for k in ("bc_grad_norm", "actor_grad_norm", "bc_accept", "q_rank_gap", "q_demo_minus_pi", "bc_loss"):
+    for k in (
+        "bc_grad_norm",
+        "actor_grad_norm",
+        "bc_accept",
+        "q_rank_gap",
+        "q_reverse_gap",
+        "q_demo_minus_pi",
+        "bc_loss",
+    ):
         assert np.isfinite(info[k]), k
     assert info["bc_grad_norm"] > 0 and info["actor_grad_norm"] > 0
     assert 0.0 <= info["bc_accept"] <= 1.0

@@ -49,15 +49,15 @@ REPRODUCIBLE_KERNELS = {
 EXPECTED = {
     "cpu-small": (
         "8831471e14cd280a9d2339ffd72b98d7f0d09a776f2e4984c62848c8906f3e26",
-        "c6b798710e32268868ce62bf0be1d04bb1ad5d063bbe145d40f2ce1d6339bf01",
+        "c82fe6b1f58a0bff3533fe6a9dad749a0dda4dfe35dfcccedd7154991ac943c9",
     ),
     "cpu-small-state": (
         "becc02952ff0dc8f6cb8810d57d08f62ea3dce5cadafe474e577d2f791f9d35f",
-        "be1eca3fdc52092876432cf40befb9050eb0a8423c96ae5dc6c8b5c38c6d0c6a",
+        "46c2b4f2e83340896afe86904a989a2bf867447be687f37bdadb1927acf134ef",
     ),
     "smoke/rsac": (
         "92deac40d041336e3dff6353cc6e89e08d64ef1f0e0c5fda9ee08066d290c2ed",
-        "5821b5e3afb131a6e11bd1d5040b70933757a88df58f64cf4557a1d49d45ca95",
+        "306d5d0f5f6290cf4eed829a2d8bb58a712c53ce68ea029dccf8cba21fbda2dc",
     ),
     "gasv2-smoke": (
         "85d2569078fed660313962f69a7f76fe49144cd6c982c7e339815e35da5d1898",
@@ -83,6 +83,7 @@ SAC_METRICS = frozenset(
         "q2",
         "q_demo_minus_pi",
         "q_rank_gap",
+        "q_reverse_gap",
         "target_q",
     }
 )

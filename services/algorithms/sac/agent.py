@@ -224,7 +224,12 @@ class RecurrentSAC:
             out["crr_keep"] = masked_mean(weights, batch.mask)
         if fwd.critique is not None:
             c = fwd.critique
-            out |= {"bc_accept": c.accept, "q_rank_gap": c.rank_gap, "q_demo_minus_pi": c.pi_gap}
+            out |= {
+                "bc_accept": c.accept,
+                "q_rank_gap": c.rank_gap,
+                "q_reverse_gap": c.reverse_gap,
+                "q_demo_minus_pi": c.pi_gap,
+            }
         if b_loss is not None:
             out |= {"bc_loss": b_loss.detach(), "bc_weight": w, "bc_grad_norm": _norm(bc_grads)}
         return out

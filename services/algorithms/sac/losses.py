@@ -312,11 +312,15 @@ class DemoCritique:
 
     ``keep`` is the Q filter: 1 where min Q(h, a_demo) > min Q(h, squash(mean)). ``rank_gap`` is the
     mean of Q(h, a_demo) - Q(h, g a_demo), g a quarter turn of (dx, dy): how well the critic tells
-    the demonstrated move from the same move turned away (0: it cannot rank them)."""
+    the demonstrated move from the same move turned away (0: it cannot rank them). A vertical move
+    turns into itself, so on descents and lifts it reads 0 whatever the critic knows:
+    ``reverse_gap``, Q(h, a_demo) - Q(h, the move reversed: dx, dy, dz, dtheta negated, jaw kept),
+    ranks those too."""
 
     keep: Tensor  # (B, L)
     accept: Tensor  # () share of demonstration transitions kept
     rank_gap: Tensor  # ()
+    reverse_gap: Tensor  # ()
     pi_gap: Tensor  # () mean Q(h, a_demo) - Q(h, squash(mean))
 
 
@@ -331,9 +335,12 @@ def critique_demos(
     with torch.no_grad():
         a = batch.actions
         turned = torch.stack([a[..., 0], -a[..., 2], a[..., 1], a[..., 3], a[..., 4]], -1)
+        reversed_ = torch.cat([a[..., :1], -a[..., 1:]], -1)
         q_turned = torch.min(*critic.q(feats[:, :-1].detach(), turned))
+        q_reversed = torch.min(*critic.q(feats[:, :-1].detach(), reversed_))
         keep = (values.advantage > 0).to(values.replayed.dtype)
         return DemoCritique(keep, masked_mean(keep, demo), masked_mean(values.replayed - q_turned, demo),
+                            masked_mean(values.replayed - q_reversed, demo),
                             masked_mean(values.advantage, demo))  # fmt: skip
 
 

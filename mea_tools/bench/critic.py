@@ -1,0 +1,148 @@
+"""`mea bench critic --run RUN_DIR`: what a recurrent SAC run's critic says along its own replay.
+
+Reads the run's newest learner checkpoint (networks and replay) and prints, per kind of stored
+episode (demonstrations with their copies, online successes, the latest online failures), the
+critic's value of the recorded action beside the same move turned a quarter, reversed, uniform
+random actions and the policy's mean, step by step back from the episode's end and from its start
+(``services.algorithms.sac.critic_profile``). Nothing is written; the run may be training."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from services.algorithms.batch import to_batch
+from services.algorithms.networks import NetConfig
+from services.algorithms.replay import SequenceReplay
+from services.algorithms.sac.algorithm import SacConfig
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.critic_profile import COLUMNS, StepProfile, step_profile
+from services.common.config import refuse
+from services.learner import checkpoint
+
+PROG = "mea bench critic"
+KINDS = {"demos": {"demo": True}, "successes": {"demo": False, "success": True},
+         "failures": {"demo": False, "success": False}}  # fmt: skip
+"""Kinds of stored episodes profiled, and the replay's selection of each."""
+
+
+@dataclass(frozen=True)
+class CriticBenchConfig:
+    """Profile a run's critic along its stored demonstrations, successes and failures."""
+
+    run: Path | None = None
+    """The run directory (RUN_DIR of `mea run`) whose newest learner checkpoint is read."""
+    steps: int = 10
+    """Steps profiled back from each episode's end and from its start."""
+    episodes: int = 200
+    """Stored episodes per kind: the first demonstrations, the latest successes and failures."""
+    random_actions: int = 8
+    """Uniform random actions rated per step (their mean is the ``random`` column)."""
+    batch: int = 16
+    """Episodes per forward pass."""
+    threads: int = 1
+    """torch threads (a training run may share the cores)."""
+    json: bool = False
+    """Print exactly one JSON object instead of tables."""
+
+    def __post_init__(self) -> None:
+        if self.run is None:
+            raise ValueError("--run is required: a run directory with learner checkpoints")
+        if min(self.steps, self.episodes, self.random_actions, self.batch, self.threads) < 1:
+            raise ValueError("--steps, --episodes, --random-actions, --batch and --threads must be >= 1")
+
+
+def _algorithm(run: Path) -> SacConfig:
+    """The run learner's recurrent SAC settings from RUN_DIR/learner/learner.json; refused in one line."""
+    path = run / "learner" / "learner.json"
+    try:
+        algo = json.loads(path.read_text())["algorithm"]
+    except FileNotFoundError:
+        refuse(PROG, f"{path}: no such file (is {run} a run directory whose learner has started?)")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        refuse(PROG, f"{path}: not a learner's settings ({type(exc).__name__}: {exc})")
+    if not isinstance(algo, dict) or algo.get("name") not in ("equi_rsac", "rsac"):
+        name = algo.get("name") if isinstance(algo, dict) else algo
+        refuse(
+            PROG, f"{path}: the learner is {name!r}; this profiles recurrent SAC critics (equi_rsac, rsac)"
+        )
+    try:
+        return SacConfig(name=algo["name"], net=NetConfig.from_dict(algo["net"]), sac=SacSettings(**algo["sac"]),
+                         observation=algo.get("observation", "voxel"))  # fmt: skip
+    except (KeyError, TypeError, ValueError) as exc:
+        refuse(PROG, f"{path}: its settings do not build a learner here ({type(exc).__name__}: {exc})")
+
+
+def _table(kind: str, count: int, profile: StepProfile) -> str:
+    where = (
+        "steps back from the end (1 = the last transition)" if profile.from_end else "steps from the start"
+    )
+    head = f"{kind}, {count} episodes, by {where}; min-Q of the action, mean per step"
+    cols = ["k" if profile.from_end else "t", "n", "reward", *COLUMNS, "rec-rand", "mean-rec"]
+    lines = [head, "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for i, step in enumerate(profile.steps):
+        if not profile.counts[i]:
+            continue
+        v = {c: profile.values[c][i] for c in COLUMNS}
+        cells = [str(step), str(profile.counts[i]), f"{profile.rewards[i]:.2f}", *(f"{v[c]:.3f}" for c in COLUMNS),
+                 f"{v['recorded'] - v['random']:+.3f}", f"{v['policy_mean'] - v['recorded']:+.3f}"]  # fmt: skip
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _jsonable(profile: StepProfile) -> dict[str, Any]:
+    def num(x: float) -> float | None:
+        return None if math.isnan(x) else round(float(x), 6)
+
+    return {"steps": list(profile.steps), "counts": profile.counts.tolist(),
+            "reward": [num(x) for x in profile.rewards],
+            **{c: [num(x) for x in profile.values[c]] for c in COLUMNS}}  # fmt: skip
+
+
+def run(cfg: CriticBenchConfig) -> dict:
+    assert cfg.run is not None
+    algo = _algorithm(cfg.run)
+    try:
+        path, learner, replay_state, _ = checkpoint.load_newest(cfg.run / "learner" / "checkpoints")
+    except checkpoint.CheckpointError as exc:
+        refuse(PROG, str(exc))
+    torch.set_num_threads(cfg.threads)
+    agent = algo.build(0, torch.device("cpu"))
+    try:
+        agent.load_state_dict(learner["sac"])
+        replay = SequenceReplay.from_state_dict(replay_state)
+    except (KeyError, RuntimeError, ValueError) as exc:
+        refuse(PROG, f"{path}: does not load into the learner its run describes ({type(exc).__name__})")
+    out: dict[str, Any] = {"run": str(cfg.run), "checkpoint": path.name, "updates": agent.updates,
+                           "alpha": float(agent.alpha), "kinds": {}}  # fmt: skip
+    for kind, where in KINDS.items():
+        slots = replay.slots(**where)
+        slots = slots[: cfg.episodes] if kind == "demos" else slots[-cfg.episodes :]
+        if not slots.size:
+            out["kinds"][kind] = {"episodes": 0}
+            continue
+        batches = [to_batch(replay.gather(slots[i : i + cfg.batch])) for i in range(0, slots.size, cfg.batch)]
+        profiles = [step_profile(agent.actor, agent.critic_target, batches, steps=cfg.steps, from_end=end,
+                                 random_actions=cfg.random_actions) for end in (True, False)]  # fmt: skip
+        out["kinds"][kind] = {"episodes": int(slots.size), "from_end": _jsonable(profiles[0]),
+                              "from_start": _jsonable(profiles[1])}  # fmt: skip
+        if not cfg.json:
+            for p in profiles:
+                print(_table(kind, int(slots.size), p) + "\n")
+    if cfg.json:
+        json.dump(out, sys.stdout)
+        print()
+    else:
+        print(
+            f"{path.name}: {agent.updates:,} updates, alpha {float(agent.alpha):.3g} (the target critic rates)"
+        )
+    return out
+
+
+__all__ = ["CriticBenchConfig", "run"]

@@ -1,0 +1,142 @@
+"""The critic profile as math (a critic and actor whose values are known, against a loop over the
+episodes) and `mea bench critic` on a saved learner checkpoint: its kinds, counts and one-line
+refusals."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from services.algorithms.batch import to_batch
+from services.algorithms.sac.critic_profile import COLUMNS, step_profile
+from services.common import config
+from services.common.config import ServiceConfig
+from services.learner import checkpoint
+from tests.helpers.learner import learner_episode, tiny_learner_config, tiny_trainer
+from tests.unit.test_sac_options import replay_with
+
+pytestmark = pytest.mark.unit
+
+W = torch.tensor([0.0, 1.0, 0.0, -1.0, 0.0])  # Q = dx - dz: rates a descent and a move along +x
+
+
+class KnownCritic(nn.Module):
+    def features_of(self, batch) -> torch.Tensor:
+        return torch.zeros(*batch.actions.shape[:1], batch.actions.shape[1] + 1, 1)
+
+    def q(self, feats: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        v = actions @ W
+        return v, v + 1.0  # the min is the first
+
+
+class KnownActor(nn.Module):
+    """A pre-squash mean of atanh(0.5) on dx: the policy's mean action moves +x at half the range."""
+
+    def forward(self, images, prev_actions, obs_mask=None, **_):
+        mean = torch.zeros(*images.shape[:2], 5)
+        mean[..., 1] = float(np.arctanh(0.5))
+        return mean, None, None
+
+
+def batches():
+    replay = replay_with([4, 6, 3, 5], demos=2)
+    slots = replay.slots()
+    return [to_batch(replay.gather(slots[:2])), to_batch(replay.gather(slots[2:]))]
+
+
+@pytest.mark.parametrize("from_end", [True, False])
+def test_each_column_is_the_mean_of_its_known_values_per_step(from_end):
+    bs = batches()
+    p = step_profile(KnownActor(), KnownCritic(), bs, steps=5, from_end=from_end, random_actions=4)
+    expect = {c: [[] for _ in range(5)] for c in ("recorded", "turned", "reversed", "reward")}
+    for b in bs:
+        for e, length in enumerate(b.mask.sum(1).tolist()):
+            for i in range(min(5, int(length))):
+                t = int(length) - 1 - i if from_end else i
+                dx, dy, dz = (float(b.actions[e, t, j]) for j in (1, 2, 3))
+                expect["recorded"][i].append(dx - dz)
+                expect["turned"][i].append(-dy - dz)  # (dx, dy) -> (-dy, dx)
+                expect["reversed"][i].append(-dx + dz)
+                expect["reward"][i].append(float(b.rewards[e, t]))
+    assert p.steps == ((1, 2, 3, 4, 5) if from_end else (0, 1, 2, 3, 4))
+    assert p.counts.tolist() == [len(v) for v in expect["recorded"]] == [4, 4, 4, 3, 2]
+    for c in ("recorded", "turned", "reversed"):
+        np.testing.assert_allclose(p.values[c], [np.mean(v) for v in expect[c]], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(p.rewards, [np.mean(v) for v in expect["reward"]])
+    np.testing.assert_allclose(p.values["policy_mean"], 0.5, rtol=1e-5)  # dx = tanh(atanh 0.5), dz = 0
+    assert (np.abs(p.values["random"]) < 2).all()  # dx - dz of actions in the box
+
+
+def test_the_random_column_is_seeded_and_past_the_longest_episode_nothing_is_counted():
+    bs = batches()
+    a = step_profile(KnownActor(), KnownCritic(), bs, steps=8, from_end=True, seed=3)
+    b = step_profile(KnownActor(), KnownCritic(), bs, steps=8, from_end=True, seed=3)
+    c = step_profile(KnownActor(), KnownCritic(), bs, steps=8, from_end=True, seed=4)
+    np.testing.assert_array_equal(a.values["random"], b.values["random"])
+    assert not np.allclose(a.values["random"][:6], c.values["random"][:6])
+    assert a.counts.tolist() == [4, 4, 4, 3, 2, 1, 0, 0]
+    assert np.isnan(a.values["recorded"][6:]).all() and np.isnan(a.rewards[6:]).all()
+    with pytest.raises(ValueError, match="steps and random_actions must be >= 1"):
+        step_profile(KnownActor(), KnownCritic(), bs, steps=0, from_end=True)
+
+
+def saved_run(tmp_path: Path) -> Path:
+    """A run directory holding a tiny learner's settings and one checkpoint of its trainer."""
+    run = tmp_path / "run"
+    cfg = tiny_learner_config(run, ServiceConfig(), min_steps=10)
+    trainer = tiny_trainer(min_steps=10)
+    for k in range(7):
+        trainer.insert(learner_episode(k, T=6 + k % 3, demo=k < 2))
+    assert trainer.step() is not None
+    checkpoint.save_trainer(run / "learner" / "checkpoints", trainer, checkpoint.Lineage(1, "run-x", {}), {})
+    config.save(cfg, run / "learner" / "learner.json")
+    return run
+
+
+def test_the_bench_profiles_each_kind_of_stored_episode(tmp_path, capsys):
+    from mea_tools.bench.critic import CriticBenchConfig, run
+
+    path = saved_run(tmp_path)
+    out = run(CriticBenchConfig(run=path, steps=3, json=True))
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == json.loads(json.dumps(out))
+    kinds = out["kinds"]
+    assert kinds["demos"]["episodes"] == 2
+    assert kinds["successes"]["episodes"] + kinds["failures"]["episodes"] == 5
+    demos = kinds["demos"]["from_end"]
+    assert demos["steps"] == [1, 2, 3] and demos["counts"] == [2, 2, 2]
+    assert set(COLUMNS) <= set(demos) and all(isinstance(v, float) for v in demos["recorded"])
+    assert (out["updates"], out["checkpoint"]) == (1, "learner-000001.pt")
+
+
+def test_the_bench_refuses_in_one_line_and_writes_nothing(tmp_path, capsys):
+    from mea_tools.bench.critic import CriticBenchConfig, run
+
+    with pytest.raises(ValueError, match="--run is required"):
+        CriticBenchConfig()
+    with pytest.raises(SystemExit):
+        run(CriticBenchConfig(run=tmp_path / "absent"))
+    assert "learner.json: no such file" in capsys.readouterr().err
+    path = saved_run(tmp_path)
+    settings = path / "learner" / "learner.json"
+    saved = json.loads(settings.read_text())
+    settings.write_text(json.dumps({**saved, "algorithm": {"name": "gasv2"}}))
+    files = {p: p.read_bytes() for p in path.rglob("*") if p.is_file()}
+    with pytest.raises(SystemExit):
+        run(CriticBenchConfig(run=path))
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the learner is 'gasv2'" in err
+    settings.write_text(json.dumps(saved))
+    for p in (path / "learner" / "checkpoints").iterdir():
+        p.unlink()
+    files = {p: p.read_bytes() for p in path.rglob("*") if p.is_file()}
+    with pytest.raises(SystemExit):
+        run(CriticBenchConfig(run=path))
+    err = capsys.readouterr().err
+    assert err.startswith("mea bench critic: ") and err.count("\n") == 1
+    assert {p: p.read_bytes() for p in path.rglob("*") if p.is_file()} == files
