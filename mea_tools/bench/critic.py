@@ -19,6 +19,7 @@ import torch
 
 from services.algorithms.batch import to_batch
 from services.algorithms.networks import NetConfig
+from services.algorithms.registry import lookup
 from services.algorithms.replay import SequenceReplay
 from services.algorithms.sac.algorithm import SacConfig
 from services.algorithms.sac.config import SacSettings
@@ -67,8 +68,12 @@ def _algorithm(run: Path) -> SacConfig:
         refuse(PROG, f"{path}: no such file (is {run} a run directory whose learner has started?)")
     except (OSError, ValueError, KeyError, TypeError) as exc:
         refuse(PROG, f"{path}: not a learner's settings ({type(exc).__name__}: {exc})")
-    if not isinstance(algo, dict) or algo.get("name") not in ("equi_rsac", "rsac"):
-        name = algo.get("name") if isinstance(algo, dict) else algo
+    name = algo.get("name") if isinstance(algo, dict) else algo
+    try:
+        sac = lookup(str(name)).config is SacConfig
+    except ValueError:
+        sac = False
+    if not sac:
         refuse(
             PROG, f"{path}: the learner is {name!r}; this profiles recurrent SAC critics (equi_rsac, rsac)"
         )
