@@ -16,7 +16,13 @@ import torch
 from torch import Tensor, nn
 
 from services.algorithms.networks import disc_xy
-from services.algorithms.sac.losses import Batch, deterministic_action, gathered
+from services.algorithms.sac.losses import (
+    Batch,
+    deterministic_action,
+    gathered,
+    quarter_turned,
+    reversed_move,
+)
 
 COLUMNS = ("recorded", "turned", "reversed", "random", "policy_mean")
 """The actions rated at each step (min of the twin Q): the recorded one; its (dx, dy) turned a
@@ -36,14 +42,6 @@ class StepProfile:
     rewards: np.ndarray  # (K,)
 
 
-def _turned(a: Tensor) -> Tensor:
-    return torch.stack([a[..., 0], -a[..., 2], a[..., 1], a[..., 3], a[..., 4]], -1)
-
-
-def _reversed(a: Tensor) -> Tensor:
-    return torch.cat([a[..., :1], -a[..., 1:]], -1)
-
-
 @torch.no_grad()
 def column_values(
     actor: nn.Module, critic: nn.Module, batch: Batch, random_actions: int, generator: torch.Generator
@@ -61,8 +59,8 @@ def column_values(
     mean = actor(batch.images, batch.prev_actions, obs_mask=batch.obs_mask, **gathered(batch))[0][:, :-1]
     return {
         "recorded": q(a),
-        "turned": q(_turned(a)),
-        "reversed": q(_reversed(a)),
+        "turned": q(quarter_turned(a)),
+        "reversed": q(reversed_move(a)),
         "random": torch.stack(draws).mean(0),
         "policy_mean": q(deterministic_action(mean, disc_xy(actor))),
     }

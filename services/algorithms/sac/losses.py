@@ -324,6 +324,16 @@ class DemoCritique:
     pi_gap: Tensor  # () mean Q(h, a_demo) - Q(h, squash(mean))
 
 
+def quarter_turned(a: Tensor) -> Tensor:
+    """Actions (..., 5) with (dx, dy) turned a quarter, to (-dy, dx)."""
+    return torch.stack([a[..., 0], -a[..., 2], a[..., 1], a[..., 3], a[..., 4]], -1)
+
+
+def reversed_move(a: Tensor) -> Tensor:
+    """Actions (..., 5) moving the other way: dx, dy, dz and dtheta negated, the jaw kept."""
+    return torch.cat([a[..., :1], -a[..., 1:]], -1)
+
+
 def critique_demos(
     critic: nn.Module, feats: Tensor, batch: Batch, values: ActionValues
 ) -> DemoCritique | None:
@@ -334,10 +344,8 @@ def critique_demos(
     demo = batch.mask * batch.demo[:, None]
     with torch.no_grad():
         a = batch.actions
-        turned = torch.stack([a[..., 0], -a[..., 2], a[..., 1], a[..., 3], a[..., 4]], -1)
-        reversed_ = torch.cat([a[..., :1], -a[..., 1:]], -1)
-        q_turned = torch.min(*critic.q(feats[:, :-1].detach(), turned))
-        q_reversed = torch.min(*critic.q(feats[:, :-1].detach(), reversed_))
+        q_turned = torch.min(*critic.q(feats[:, :-1].detach(), quarter_turned(a)))
+        q_reversed = torch.min(*critic.q(feats[:, :-1].detach(), reversed_move(a)))
         keep = (values.advantage > 0).to(values.replayed.dtype)
         return DemoCritique(keep, masked_mean(keep, demo), masked_mean(values.replayed - q_turned, demo),
                             masked_mean(values.replayed - q_reversed, demo),
