@@ -131,6 +131,7 @@ def test_the_bench_refuses_in_one_line_and_writes_nothing(tmp_path, capsys):
         run(CriticBenchConfig(run=path))
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "the learner is 'gasv2'" in err
+    assert {p: p.read_bytes() for p in path.rglob("*") if p.is_file()} == files
     settings.write_text(json.dumps(saved))
     for p in (path / "learner" / "checkpoints").iterdir():
         p.unlink()

@@ -18,7 +18,7 @@ from torch import Tensor, nn
 from services.algorithms.networks import disc_xy
 from services.algorithms.sac.losses import (
     Batch,
-    deterministic_action,
+    action_values,
     gathered,
     quarter_turned,
     reversed_move,
@@ -46,23 +46,25 @@ class StepProfile:
 def column_values(
     actor: nn.Module, critic: nn.Module, batch: Batch, random_actions: int, generator: torch.Generator
 ) -> dict[str, Tensor]:
-    """Each column's min-Q at every transition of ``batch``: column -> (B, L)."""
-    feats = critic.features_of(batch)[:, :-1]
+    """Each column's min-Q at every transition of ``batch``: column -> (B, L). The recorded and
+    policy-mean columns are the learner's own ``action_values`` (its Q filter and critique)."""
+    feats = critic.features_of(batch)
+    mean = actor(batch.images, batch.prev_actions, obs_mask=batch.obs_mask, **gathered(batch))[0]
+    values = action_values(critic, feats, batch, mean, disc_xy(actor))
     a = batch.actions
 
     def q(actions: Tensor) -> Tensor:
-        return torch.min(*critic.q(feats, actions))
+        return torch.min(*critic.q(feats[:, :-1], actions))
 
     draws = [
         q(torch.rand(a.shape, generator=generator, dtype=a.dtype) * 2 - 1) for _ in range(random_actions)
     ]
-    mean = actor(batch.images, batch.prev_actions, obs_mask=batch.obs_mask, **gathered(batch))[0][:, :-1]
     return {
-        "recorded": q(a),
+        "recorded": values.replayed,
         "turned": q(quarter_turned(a)),
         "reversed": q(reversed_move(a)),
         "random": torch.stack(draws).mean(0),
-        "policy_mean": q(deterministic_action(mean, disc_xy(actor))),
+        "policy_mean": values.policy,
     }
 
 
