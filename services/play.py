@@ -84,7 +84,7 @@ def _key(run_dir: Path | None) -> bytes | None:
     return run_key.load(run_dir / run_key.FILE_NAME)
 
 
-def _run_setting(run_dir: Path | None, name: str, default: str) -> str:
+def run_setting(run_dir: Path | None, name: str, default: str) -> str:
     """Setting ``name`` of the run's config.json (``default`` outside a run or where it has none)."""
     if run_dir is None:
         return default
@@ -115,7 +115,7 @@ def play_policy(a: PlayArgs) -> str:
         blob = weights_file.read(path, _key(run_dir))
     except weights_file.WeightsFileError as exc:
         raise ValueError(str(exc)) from None
-    task = a.task or _run_setting(run_dir, "task", "")
+    task = a.task or run_setting(run_dir, "task", "")
     if task not in TASK_CLASSES:
         raise ValueError(f"--task must be one of {', '.join(TASK_CLASSES)} (a weights file outside a run "
                          f"directory names none), not {task!r}")  # fmt: skip
@@ -134,7 +134,7 @@ def play_policy(a: PlayArgs) -> str:
     # the run's own start pose (a --gripper-start fixed run is filmed from the public start)
     try:
         settings = EnvSettings(
-            depth_image=observation == "depth", gripper_start=_run_setting(run_dir, "gripper_start", "random")
+            depth_image=observation == "depth", gripper_start=run_setting(run_dir, "gripper_start", "random")
         )
     except ValueError as exc:
         raise ValueError(f"{run_dir}/config.json: {exc}") from None

@@ -4,10 +4,14 @@ Reads the run's newest learner checkpoint (networks and replay) and prints, per 
 episode (demonstrations with their copies, online successes, the latest online failures), the
 critic's value of the recorded action beside the same move turned a quarter, reversed, uniform
 random actions and the policy's mean, step by step back from the episode's end and from its start
-(``services.algorithms.sac.critic_profile``). Nothing is written; the run may be training."""
+(``services.algorithms.sac.critic_profile``). With ``--handover N`` it also plays the policy in the
+simulator from the first N recorded demonstrations' own states, k steps before their end, beside
+the critic's value of the policy's action there (``mea_tools.bench.handover``). Nothing is written;
+the run may be training."""
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import sys
@@ -15,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from services.algorithms.batch import to_batch
@@ -49,6 +54,10 @@ class CriticBenchConfig:
     """Episodes per forward pass."""
     threads: int = 1
     """torch threads (a training run may share the cores)."""
+    handover: int = 0
+    """Play the policy from the first this many recorded demonstrations' own states (0: off)."""
+    handover_steps: tuple[int, ...] = (1, 2, 4, 8)
+    """Steps before each demonstration's end at which the policy takes over."""
     json: bool = False
     """Print exactly one JSON object instead of tables."""
 
@@ -57,6 +66,10 @@ class CriticBenchConfig:
             raise ValueError("--run is required: a run directory with learner checkpoints")
         if min(self.steps, self.episodes, self.random_actions, self.batch, self.threads) < 1:
             raise ValueError("--steps, --episodes, --random-actions, --batch and --threads must be >= 1")
+        if self.handover < 0:
+            raise ValueError(f"--handover must be >= 0, got {self.handover}")
+        if not self.handover_steps or min(self.handover_steps) < 1:
+            raise ValueError(f"--handover-steps must be one or more integers >= 1, got {self.handover_steps}")
 
 
 def _algorithm(run: Path) -> SacConfig:
@@ -101,13 +114,15 @@ def _table(kind: str, count: int, profile: StepProfile) -> str:
     return "\n".join(lines)
 
 
-def _jsonable(profile: StepProfile) -> dict[str, Any]:
-    def num(x: float) -> float | None:
-        return None if math.isnan(x) else round(float(x), 6)
+def _num(x: float) -> float | None:
+    """A JSON number (NaN, an empty mean, becomes null)."""
+    return None if math.isnan(x) else round(float(x), 6)
 
+
+def _jsonable(profile: StepProfile) -> dict[str, Any]:
     return {"steps": list(profile.steps), "counts": profile.counts.tolist(),
-            "reward": [num(x) for x in profile.rewards],
-            **{c: [num(x) for x in profile.values[c]] for c in COLUMNS}}  # fmt: skip
+            "reward": [_num(x) for x in profile.rewards],
+            **{c: [_num(x) for x in profile.values[c]] for c in COLUMNS}}  # fmt: skip
 
 
 def run(cfg: CriticBenchConfig) -> dict:
@@ -140,6 +155,8 @@ def run(cfg: CriticBenchConfig) -> dict:
         if not cfg.json:
             for p in profiles:
                 print(_table(kind, int(slots.size), p) + "\n")
+    if cfg.handover:
+        out["handover"] = _handover(cfg, algo, agent, replay)
     if cfg.json:
         json.dump(out, sys.stdout)
         print()
@@ -148,6 +165,56 @@ def run(cfg: CriticBenchConfig) -> dict:
             f"{path.name}: {agent.updates:,} updates, alpha {float(agent.alpha):.3g} (the target critic rates)"
         )
     return out
+
+
+def _handover(cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceReplay) -> dict[str, Any]:
+    """The handover plays beside the critic's Q of the policy's mean on the same demonstrations."""
+    assert cfg.run is not None
+    # deferred: pybullet and the tasks, needed only here
+    from mea_tools.bench.handover import handover_table, play_handover, recorded_demos, summarize
+    from services.algorithms.sac.policy import ActorRuntime, PolicySpec
+    from services.episodes.rollout import policy_input
+    from services.play import run_setting
+    from services.tasks import TASK_CLASSES, EnvSettings, make_env
+
+    demos = recorded_demos(cfg.run, cfg.handover)
+    if not demos:
+        refuse(
+            PROG, f"{cfg.run}: no recorded demonstrations under {cfg.run}/episodes (--handover needs them)"
+        )
+    task = run_setting(cfg.run, "task", "")
+    if task not in TASK_CLASSES:
+        refuse(PROG, f"{cfg.run}/config.json: names no task this project has ({task!r})")
+    try:
+        settings = EnvSettings(depth_image=algo.observation == "depth",
+                               gripper_start=run_setting(cfg.run, "gripper_start", "random"))  # fmt: skip
+    except ValueError as exc:
+        refuse(PROG, f"{cfg.run}/config.json: {exc}")
+    # the critic's side: the same original episodes as they sit in the replay
+    slot_of = dict(zip(replay.episode_ids(), replay.slots().tolist(), strict=True))
+    slots = np.array([slot_of[d.episode_id] for d in demos if d.episode_id in slot_of], dtype=np.int64)
+    critic: dict[int, float] = {}
+    if slots.size:
+        batches = [to_batch(replay.gather(slots[i : i + cfg.batch])) for i in range(0, slots.size, cfg.batch)]
+        prof = step_profile(agent.actor, agent.critic_target, batches, steps=max(cfg.handover_steps),
+                            from_end=True, random_actions=1)  # fmt: skip
+        critic = {k: float(v) for k, v in zip(prof.steps, prof.values["policy_mean"], strict=True)}
+    runtime = ActorRuntime.of(agent.actor, PolicySpec(algo.net, algo.observation))
+    env = make_env(task, settings)
+    observe = functools.partial(policy_input, observation=algo.observation)
+    try:
+        replays = [play_handover(env, runtime, observe, d, 0) for d in demos]
+        plays = {k: [play_handover(env, runtime, observe, d, k) for d in demos] for k in cfg.handover_steps}
+    finally:
+        env.close()
+    reproduced = sum(p.success and p.policy_steps == 0 for p in replays)
+    summaries = {k: summarize(plays[k], algo.sac.gamma) for k in cfg.handover_steps}
+    note = f"{reproduced} of {len(demos)} demonstrations reproduced their success when replayed whole"
+    if not cfg.json:
+        print(handover_table(cfg.handover_steps, summaries, critic, note) + "\n")
+    return {"demos": len(demos), "in_replay": int(slots.size), "reproduced": reproduced,
+            "steps": list(cfg.handover_steps), "critic_policy_mean": [_num(critic.get(k, math.nan)) for k in cfg.handover_steps],
+            "plays": {str(k): {n: _num(v) for n, v in summaries[k].items()} for k in cfg.handover_steps}}  # fmt: skip
 
 
 __all__ = ["CriticBenchConfig", "run"]

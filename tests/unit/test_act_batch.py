@@ -81,3 +81,21 @@ def test_a_batch_needs_loaded_runtimes_of_one_actor():
     b.load(blob)  # each its own module: not one actor
     with pytest.raises(ValueError, match="one loaded actor"):
         PolicyRuntime.act_batch([a, b], _codes(np.random.default_rng(0), 2))
+
+
+def test_a_runtime_over_a_built_actor_acts_as_one_loaded_from_its_blob():
+    from services.algorithms.sac.policy import ActorRuntime
+
+    torch.manual_seed(0)
+    spec = PolicySpec(PRESETS["cpu-small"])
+    actor = build_actor(spec.net)
+    loaded = PolicyRuntime(deterministic=True)
+    loaded.load(WeightsBlob.create(1, "equi_rsac", "run-1", actor_tensors(actor), spec.to_json()))
+    direct = ActorRuntime.of(actor, spec)
+    rng = np.random.default_rng(1)
+    for tick, codes in enumerate(_codes(rng, 4)):
+        got, want = direct.act(codes), loaded.act(codes)
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        told = np.full(5, 0.25 * tick, np.float32)  # the previous action both are told
+        direct.executed(told)
+        loaded.executed(told)

@@ -141,3 +141,19 @@ def test_the_bench_refuses_in_one_line_and_writes_nothing(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("mea bench critic: ") and err.count("\n") == 1
     assert {p: p.read_bytes() for p in path.rglob("*") if p.is_file()} == files
+
+
+def test_the_handover_refuses_a_run_without_recorded_demonstrations(tmp_path, capsys):
+    from mea_tools.bench.critic import CriticBenchConfig, run
+
+    with pytest.raises(ValueError, match="--handover-steps"):
+        CriticBenchConfig(run=tmp_path, handover=2, handover_steps=(0, 4))
+    with pytest.raises(ValueError, match="--handover must be >= 0"):
+        CriticBenchConfig(run=tmp_path, handover=-1)
+    path = saved_run(tmp_path)
+    files = {p: p.read_bytes() for p in path.rglob("*") if p.is_file()}
+    with pytest.raises(SystemExit):
+        run(CriticBenchConfig(run=path, steps=2, handover=2))
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no recorded demonstrations" in err
+    assert {p: p.read_bytes() for p in path.rglob("*") if p.is_file()} == files

@@ -62,6 +62,13 @@ class ActorRuntime:
             spec,
         )
 
+    @classmethod
+    def of(cls, actor: Actor, spec: PolicySpec, deterministic: bool = True) -> ActorRuntime:
+        """A runtime over an actor already built (a learner checkpoint's), shared read-only."""
+        runtime = cls(deterministic, torch.Generator().manual_seed(0))
+        runtime.actor, runtime.spec = actor, spec
+        return runtime
+
     def fresh(self, generator: torch.Generator) -> ActorRuntime:
         other = ActorRuntime(self.deterministic, generator)
         other.actor, other.spec = self.actor, self.spec
