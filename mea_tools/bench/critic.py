@@ -17,7 +17,7 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -31,6 +31,10 @@ from services.algorithms.sac.config import SacSettings
 from services.algorithms.sac.critic_profile import COLUMNS, StepProfile, step_profile
 from services.common.config import refuse
 from services.learner import checkpoint
+
+if TYPE_CHECKING:
+    from mea_tools.bench.handover import RecordedDemo
+    from services.tasks import EnvSettings
 
 PROG = "mea bench critic"
 KINDS = {"demos": {"demo": True}, "successes": {"demo": False, "success": True},
@@ -128,6 +132,7 @@ def _jsonable(profile: StepProfile) -> dict[str, Any]:
 def run(cfg: CriticBenchConfig) -> dict:
     assert cfg.run is not None
     algo = _algorithm(cfg.run)
+    inputs = _handover_inputs(cfg, algo) if cfg.handover else None
     try:
         path, learner, replay_state, _ = checkpoint.load_newest(cfg.run / "learner" / "checkpoints")
     except checkpoint.CheckpointError as exc:
@@ -155,8 +160,8 @@ def run(cfg: CriticBenchConfig) -> dict:
         if not cfg.json:
             for p in profiles:
                 print(_table(kind, int(slots.size), p) + "\n")
-    if cfg.handover:
-        out["handover"] = _handover(cfg, algo, agent, replay)
+    if inputs is not None:
+        out["handover"] = _handover(cfg, algo, agent, replay, inputs)
     if cfg.json:
         json.dump(out, sys.stdout)
         print()
@@ -167,15 +172,20 @@ def run(cfg: CriticBenchConfig) -> dict:
     return out
 
 
-def _handover(cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceReplay) -> dict[str, Any]:
-    """The handover plays beside the critic's Q of the policy's mean on the same demonstrations."""
+@dataclass(frozen=True)
+class _HandoverInputs:
+    demos: list[RecordedDemo]
+    task: str
+    settings: EnvSettings
+
+
+def _handover_inputs(cfg: CriticBenchConfig, algo: SacConfig) -> _HandoverInputs:
+    """What ``--handover`` plays, checked before anything is printed (refused in one line)."""
     assert cfg.run is not None
-    # deferred: pybullet and the tasks, needed only here
-    from mea_tools.bench.handover import handover_table, play_handover, recorded_demos, summarize
-    from services.algorithms.sac.policy import ActorRuntime, PolicySpec
-    from services.episodes.rollout import policy_input
+    # deferred: pybullet and the tasks, needed only for the handover
+    from mea_tools.bench.handover import recorded_demos
     from services.play import run_setting
-    from services.tasks import TASK_CLASSES, EnvSettings, make_env
+    from services.tasks import TASK_CLASSES, EnvSettings
 
     demos = recorded_demos(cfg.run, cfg.handover)
     if not demos:
@@ -190,7 +200,20 @@ def _handover(cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceRe
                                gripper_start=run_setting(cfg.run, "gripper_start", "random"))  # fmt: skip
     except ValueError as exc:
         refuse(PROG, f"{cfg.run}/config.json: {exc}")
-    # the critic's side: the same original episodes as they sit in the replay
+    return _HandoverInputs(demos, task, settings)
+
+
+def _handover(
+    cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceReplay, inputs: _HandoverInputs
+) -> dict[str, Any]:
+    """The handover plays beside the critic's Q of the policy's mean on the same demonstrations."""
+    from mea_tools.bench.handover import handover_table, play_handover, summarize
+    from services.algorithms.sac.policy import ActorRuntime, PolicySpec
+    from services.episodes.rollout import policy_input
+    from services.tasks import make_env
+
+    demos = inputs.demos
+    # the critic's side: the same original episodes as they sit in the replay (an evicted one is not)
     slot_of = dict(zip(replay.episode_ids(), replay.slots().tolist(), strict=True))
     slots = np.array([slot_of[d.episode_id] for d in demos if d.episode_id in slot_of], dtype=np.int64)
     critic: dict[int, float] = {}
@@ -200,8 +223,8 @@ def _handover(cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceRe
                             from_end=True, random_actions=1)  # fmt: skip
         critic = {k: float(v) for k, v in zip(prof.steps, prof.values["policy_mean"], strict=True)}
     runtime = ActorRuntime.of(agent.actor, PolicySpec(algo.net, algo.observation))
-    env = make_env(task, settings)
     observe = functools.partial(policy_input, observation=algo.observation)
+    env = make_env(inputs.task, inputs.settings)
     try:
         replays = [play_handover(env, runtime, observe, d, 0) for d in demos]
         plays = {k: [play_handover(env, runtime, observe, d, k) for d in demos] for k in cfg.handover_steps}
@@ -210,11 +233,17 @@ def _handover(cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceRe
     reproduced = sum(p.success and p.policy_steps == 0 for p in replays)
     summaries = {k: summarize(plays[k], algo.sac.gamma) for k in cfg.handover_steps}
     note = f"{reproduced} of {len(demos)} demonstrations reproduced their success when replayed whole"
+    if slots.size < len(demos):
+        note += f"; the critic's column covers the {slots.size} still in the replay"
     if not cfg.json:
         print(handover_table(cfg.handover_steps, summaries, critic, note) + "\n")
+    plays_json = {
+        str(k): {n: v if isinstance(v, int) else _num(v) for n, v in summaries[k].items()}
+        for k in cfg.handover_steps
+    }
     return {"demos": len(demos), "in_replay": int(slots.size), "reproduced": reproduced,
-            "steps": list(cfg.handover_steps), "critic_policy_mean": [_num(critic.get(k, math.nan)) for k in cfg.handover_steps],
-            "plays": {str(k): {n: _num(v) for n, v in summaries[k].items()} for k in cfg.handover_steps}}  # fmt: skip
+            "steps": list(cfg.handover_steps), "plays": plays_json,
+            "critic_policy_mean": [_num(critic.get(k, math.nan)) for k in cfg.handover_steps]}  # fmt: skip
 
 
 __all__ = ["CriticBenchConfig", "run"]

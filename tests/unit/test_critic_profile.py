@@ -157,3 +157,52 @@ def test_the_handover_refuses_a_run_without_recorded_demonstrations(tmp_path, ca
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no recorded demonstrations" in err
     assert {p: p.read_bytes() for p in path.rglob("*") if p.is_file()} == files
+
+
+class ReplayOnlyEnv:
+    """Succeeds only when a stored demonstration's own actions are executed to its last one: a
+    whole replay reproduces it, and a policy that takes over before the end does not finish."""
+
+    def __init__(self, demos: dict[int, np.ndarray], size: int) -> None:
+        self.demos, self.size = demos, size
+        self.settings = type("Settings", (), {"max_steps": 12})()
+
+    def reset(self, seed: int) -> np.ndarray:
+        self.actions, self.t = self.demos[seed], 0
+        return np.zeros((2, self.size, self.size), np.uint8)
+
+    def step(self, action):
+        on_script = self.t < len(self.actions) and np.allclose(action, self.actions[self.t])
+        self.t += 1
+        done = on_script and self.t == len(self.actions)
+        self.actions = self.actions if on_script else np.zeros((0, 5), np.float32)
+        return np.zeros((2, self.size, self.size), np.uint8), float(done), done, False, {}
+
+    def close(self) -> None:
+        pass
+
+
+def test_the_handover_plays_each_recorded_demonstration_beside_its_critic(tmp_path, capsys, monkeypatch):
+    import services.episodes.rollout
+    import services.tasks
+    from mea_tools.bench.critic import CriticBenchConfig, run
+    from services.common.mcap_io.recorder import McapRecorder
+    from tests.helpers.learner import SIZE
+
+    path = saved_run(tmp_path)
+    (path / "config.json").write_text(json.dumps({"task": "block_pull", "gripper_start": "fixed"}))
+    demos = [learner_episode(k, T=6 + k % 3, demo=True) for k in range(2)]  # the replay's two demos
+    (path / "episodes").mkdir()
+    with McapRecorder(path / "episodes" / "raw-0-0000.mcap") as rec:
+        for ep in [learner_episode(5), *demos]:
+            rec.write(ep, topic="/mea/episodes/raw")
+    env = ReplayOnlyEnv({ep.seed: np.asarray(ep.actions, np.float32) for ep in demos}, SIZE)
+    monkeypatch.setattr(services.tasks, "make_env", lambda task, settings: env)
+    monkeypatch.setattr(services.episodes.rollout, "policy_input", lambda obs, observation: obs)
+    out = run(CriticBenchConfig(run=path, steps=2, handover=5, handover_steps=(1, 3), json=True))
+    capsys.readouterr()
+    h = out["handover"]
+    assert (h["demos"], h["in_replay"], h["reproduced"], h["steps"]) == (2, 2, 2, [1, 3])
+    for k in ("1", "3"):  # the policy never plays the demo's own last action: no success, return 0
+        assert h["plays"][k] == {"episodes": 2, "successes": 0, "mean_policy_steps": None, "mean_return": 0.0}
+    assert all(isinstance(q, float) for q in h["critic_policy_mean"])
