@@ -42,6 +42,8 @@ def recorded_demos(run: Path, limit: int) -> list[RecordedDemo]:
     first, a segment still being written included), each once. Unreadable records are skipped
     (counted and logged by the reader)."""
     found: dict[str, RecordedDemo] = {}
+    if not (run / EPISODES).is_dir():  # a run that records nothing: no demos, not a warning
+        return []
     for _topic, msg in read_recording(run / EPISODES, types={"Episode"}, on_error="skip"):
         if len(found) >= limit:
             break
