@@ -96,6 +96,17 @@ def run_setting(run_dir: Path | None, name: str, default: str) -> str:
     return value if isinstance(value, str) else default
 
 
+def run_env_settings(run_dir: Path | None, observation: str) -> EnvSettings:
+    """The env a run's policy is played in: its observation's image and the run's own start pose (a
+    --gripper-start fixed run starts from the public start). ValueError naming config.json."""
+    try:
+        return EnvSettings(
+            depth_image=observation == "depth", gripper_start=run_setting(run_dir, "gripper_start", "random")
+        )
+    except ValueError as exc:
+        raise ValueError(f"{run_dir}/config.json: {exc}") from None
+
+
 def _env_steps(run_dir: Path | None, version: int) -> int:
     """The env steps the run's evaluator recorded for ``version`` (-1: none)."""
     if run_dir is None or not (run_dir / HISTORY).is_file():
@@ -131,14 +142,7 @@ def play_policy(a: PlayArgs) -> str:
         raise ValueError(f"{path}: the weights do not load for {task}: {exc}") from None
     steps = _env_steps(run_dir, blob.version)
     title = f"v{blob.version}" + ("" if steps < 0 else f" at {steps:,} env steps")
-    # the run's own start pose (a --gripper-start fixed run is filmed from the public start)
-    try:
-        settings = EnvSettings(
-            depth_image=observation == "depth", gripper_start=run_setting(run_dir, "gripper_start", "random")
-        )
-    except ValueError as exc:
-        raise ValueError(f"{run_dir}/config.json: {exc}") from None
-    env = make_env(task, settings)
+    env = make_env(task, run_env_settings(run_dir, observation))
     try:
         film = Film(a.episodes, a.size, title)
         seeds = range(a.seed, a.seed + a.episodes)

@@ -184,8 +184,8 @@ def _handover_inputs(cfg: CriticBenchConfig, algo: SacConfig) -> _HandoverInputs
     assert cfg.run is not None
     # deferred: pybullet and the tasks, needed only for the handover
     from mea_tools.bench.handover import recorded_demos
-    from services.play import run_setting
-    from services.tasks import TASK_CLASSES, EnvSettings
+    from services.play import run_env_settings, run_setting
+    from services.tasks import TASK_CLASSES
 
     demos = recorded_demos(cfg.run, cfg.handover)
     if not demos:
@@ -196,10 +196,9 @@ def _handover_inputs(cfg: CriticBenchConfig, algo: SacConfig) -> _HandoverInputs
     if task not in TASK_CLASSES:
         refuse(PROG, f"{cfg.run}/config.json: names no task this project has ({task!r})")
     try:
-        settings = EnvSettings(depth_image=algo.observation == "depth",
-                               gripper_start=run_setting(cfg.run, "gripper_start", "random"))  # fmt: skip
+        settings = run_env_settings(cfg.run, algo.observation)
     except ValueError as exc:
-        refuse(PROG, f"{cfg.run}/config.json: {exc}")
+        refuse(PROG, str(exc))
     return _HandoverInputs(demos, task, settings)
 
 

@@ -45,11 +45,11 @@ def recorded_demos(run: Path, limit: int) -> list[RecordedDemo]:
     if not (run / EPISODES).is_dir():  # a run that records nothing: no demos, not a warning
         return []
     for _topic, msg in read_recording(run / EPISODES, types={"Episode"}, on_error="skip"):
-        if len(found) >= limit:
-            break
         if getattr(msg, "is_demo", False) and msg.episode_id not in found:
             actions = np.asarray(msg.actions, np.float32)
             found[msg.episode_id] = RecordedDemo(msg.episode_id, int(msg.seed), actions)
+            if len(found) >= limit:  # stop before decoding another episode
+                break
     return list(found.values())
 
 
