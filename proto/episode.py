@@ -21,7 +21,8 @@ TASKS = ("block_pull", "block_pick", "drawer_open", "surgical_grasp_any")
 DSA_TASKS = ("surgical_grasp_any",)
 """Tasks whose episodes carry the env's DSA image (``images``: uint8 (T+1, 3, 64, 64)) as the policy's
 observation, and no voxel or depth input (``services.observation.dsa``)."""
-POLICY_KINDS = ("expert_probe", "expert_direct", "random", "learned")
+POLICY_KINDS = ("expert_probe", "expert_direct", "random", "learned", "jump_start")
+"""``jump_start``: a demonstration's first steps replayed, then the learned policy (JSRL)."""
 AUGMENTATION_KINDS = ("isometric", "mea", "mea+isometric")
 OBJECT_SYMMETRY = {"block_pull": 4, "block_pick": 4, "drawer_open": 1, "surgical_grasp_any": 1}
 """Order n of each task's objects' rotational symmetry about z: an object's yaw in

@@ -164,6 +164,9 @@ class RunConfig:
     gripper_start: str = "random"
     """Gripper at reset: random (MEA's premise) or fixed (public Equi-RSAC: centre, yaw 0)."""
 
+    jump_start: float = 0.0
+    """Share of learned episodes that replay one of the run's demos up to a drawn step, then act (JSRL)."""
+
     def resolved_success_rotations(self) -> int:
         """``success_rotations``, else the learner preset's default: the CPU recipe clones its few
         successes, and BC of 2 Block Pull demos reached 0.23-0.33 with 64 rotated copies against
@@ -209,6 +212,7 @@ class RunConfig:
             )
         if self.variant not in VARIANTS:
             raise ValueError(f"variant must be one of {tuple(VARIANTS)}, not {self.variant!r}")
+        self._check_jump_start()
         if self.mea_on not in MEA_ON:
             raise ValueError(f"mea_on must be one of {MEA_ON[1:]}, not {self.mea_on!r}")
         if self.mea_on and not VARIANTS[self.variant].mea:
@@ -246,6 +250,16 @@ class RunConfig:
             raise ValueError(f"--actors must be >= 0 or auto, not {self.actors!r}")
         if not isinstance(self.envs_per_actor, int) or not 1 <= self.envs_per_actor <= MAX_ENVS:
             raise ValueError(f"--envs-per-actor must be in 1..{MAX_ENVS}, not {self.envs_per_actor!r}")
+
+    def _check_jump_start(self) -> None:
+        if not 0.0 <= self.jump_start <= 1.0:
+            raise ValueError(f"--jump-start must be in [0, 1], not {self.jump_start}")
+        if self.jump_start == 0:
+            return
+        if self.task in DSA_TASKS:  # its episodes draw conditions besides the seed: no replay by seed
+            raise ValueError(f"--jump-start is for the manipulation tasks, not {self.task}")
+        if self.resolved_demos() < 1:
+            raise ValueError("--jump-start replays the run's demonstrations: give --demos >= 1")
 
     def _check_learner_preset(self) -> None:
         """The preset must be one of the variant's algorithm's (``learner.config.learner_presets``)."""

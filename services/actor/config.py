@@ -48,6 +48,12 @@ class ActorConfig:
     """Gripper pose at reset: random or fixed (the public Equi-RSAC start)."""
     max_demo_attempts: int = 4
     """Expert attempts per requested demonstration before giving up (only successes count)."""
+    jump_start: float = 0.0
+    """Share of learned episodes that replay a demonstration up to a drawn step first (JSRL)."""
+    jump_start_demos: int = 0
+    """Demonstrations the run recorded (on actor 0, first sitting): the ones jump starts replay."""
+    jump_start_seed_base: int = 0
+    """The first sitting's seed base, under which actor 0 recorded those demonstrations."""
     incarnation: int = 0
     """Restarts of this actor in this run (moves its seeds on)."""
     follow_gate: bool = True
@@ -71,6 +77,12 @@ class ActorConfig:
         self.env_settings()  # checks the env settings it carries (gripper_start)
         if self.incarnation < 0 or self.random_steps < 0:
             raise ValueError("incarnation and random_steps must be >= 0")
+        if not 0.0 <= self.jump_start <= 1.0:
+            raise ValueError(f"jump_start must be in [0, 1], not {self.jump_start}")
+        if self.jump_start > 0 and (self.jump_start_demos < 1 or self.policy != "learned"):
+            raise ValueError(
+                "jump_start needs the run's demonstrations (jump_start_demos >= 1) and a learned policy"
+            )
         if not 1 <= self.envs <= MAX_ENVS:
             raise ValueError(f"envs must be in 1..{MAX_ENVS}, not {self.envs}")
         if self.tensorboard_every < 1:

@@ -8,7 +8,10 @@ import logging
 import time
 from collections.abc import Sequence
 
+import numpy as np
+
 from proto.topics import EPISODE_ACKS, EPISODES_RAW
+from services.actor import jump_start
 from services.actor.config import PRESETS, ActorConfig, env_configs
 from services.actor.outbox import Outbox
 from services.actor.rollout import RolloutActor
@@ -151,7 +154,9 @@ class EpisodeScalars:
         step = env_steps if self.gate is None else self.gate.tracker.env_steps
         if self.log is None or step < 0:
             return
-        values = {"charts/episodic_return": float(sum(b.rewards)), "charts/success": float(b.success)}
+        # a jump start's outcome is not the policy's from the reset: charted apart
+        prefix = "charts/jump_start_" if b.meta["policy_kind"] == "jump_start" else "charts/"
+        values = {f"{prefix}episodic_return": float(sum(b.rewards)), f"{prefix}success": float(b.success)}
         if lag is not None:
             values["charts/weights_lag"] = float(lag)
         if self.log.due:  # a rate over the whole window, added once
@@ -223,6 +228,8 @@ class ActorLoop:
             self.policy = PolicyRuntime(deterministic=False, seed=cfg.first_seed())
         self.finished, self.lag = 0, None
         self.scalars: EpisodeScalars | None = None
+        self.jump_demos: list[jump_start.Demo] = []  # made again in ``run`` when cfg.jump_start > 0
+        self.jump_rng = np.random.default_rng([cfg.first_seed(), 29])
 
     def on_step(self, seconds: float) -> None:
         self.counts["env_steps"] += 1
@@ -300,10 +307,36 @@ class ActorLoop:
             s.policy.follow(self.policy)
         return True
 
+    def prepare_jump_starts(self) -> None:
+        """The run's demonstrations made again on env 0 (``jump_start.regenerate``), for jump starts."""
+        if self.cfg.jump_start <= 0:
+            return
+        t0 = time.monotonic()
+        self.jump_demos = jump_start.regenerate(self.cfg, self.slots[0].actor.env, self.ctx.instance)
+        extra = {"demos": len(self.jump_demos), "requested": self.cfg.jump_start_demos,
+                 "seconds": round(time.monotonic() - t0, 1)}  # fmt: skip
+        if len(self.jump_demos) < self.cfg.jump_start_demos:
+            log.warning("jump starts: fewer demonstrations made again than the run recorded", extra=extra)
+        else:
+            log.info("jump starts: the run's demonstrations made again", extra=extra)
+
     def start(self, slot: EnvSlot) -> None:
-        """A learned episode begins (stepped by ``step``); a random or expert one runs whole, here."""
+        """A learned episode begins (stepped by ``step``), jump-started from a demonstration with
+        probability ``cfg.jump_start``; a random or expert one runs whole, here."""
         if slot.actor.next_is_learned():
-            slot.episode = slot.actor.begin_learned(slot.policy, self.on_step)
+            jump = jump_start.draw(self.jump_rng, self.jump_demos, self.cfg.jump_start)
+            if jump is None:
+                slot.episode = slot.actor.begin_learned(slot.policy, self.on_step)
+                return
+            try:
+                slot.episode = slot.actor.begin_jump_start(slot.policy, jump, self.on_step)
+            except ValueError as exc:
+                slot.episode = None
+                self.dropped(exc)
+                return
+            if slot.episode.done:  # the env ended it within the replayed steps
+                b, slot.episode = slot.episode.builder, None
+                self.done(slot, b)
             return
         try:
             b = slot.actor.policy_episode(slot.k, slot.policy, self.on_step)
@@ -334,6 +367,7 @@ class ActorLoop:
 
     def run(self) -> None:
         self.demos()
+        self.prepare_jump_starts()
         self.scalars = EpisodeScalars(self.cfg, self.ctx.instance, self.gate, self.counts["env_steps"])
         shutdown = self.ctx.shutdown
         while (self.cfg.episodes == 0 or self.finished < self.cfg.episodes) and not shutdown.is_set():

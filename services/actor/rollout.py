@@ -23,12 +23,14 @@ class RolloutActor:
         self.instance = instance
         self.env = env or make_env(cfg.task, cfg.env_settings())
         self.counter = 0
+        self.stream_seed = -1  # the last seed drawn from this actor's stream: names its episode
         self.prefilled = 0  # env steps of the random prefill done
         self.rng = np.random.default_rng([cfg.seed_base, cfg.index, 17])
 
     def next_seed(self) -> int:
         seed = self.cfg.first_seed() + self.counter
         self.counter += 1
+        self.stream_seed = seed
         return seed
 
     def builder(self, seed: int, kind: str, version: int, is_demo: bool) -> EpisodeBuilder:
@@ -77,6 +79,28 @@ class RolloutActor:
         builder = self.builder(seed, "learned", policy.version, False)
         return EpisodeStepper(self.env, seed, builder, on_step, getattr(policy, "executed", None))
 
+    def begin_jump_start(self, policy, jump, on_step=None) -> EpisodeStepper:
+        """A learned episode on a demonstration's seed (``jump``: a ``jump_start.JumpStart``) whose
+        first ``jump.replayed`` steps execute the demonstration's actions, returned at the handover
+        (or ended, should the env end it sooner). The policy reads every observation and is told
+        every executed action, so its recurrent state at the handover is the one it would have had
+        after acting there itself. Its id names a seed drawn from this actor's stream (``episode_id``):
+        several envs of one actor jump-starting from the same demonstration get ids of their own."""
+        self.next_seed()
+        policy.reset()
+        builder = self.builder(jump.demo.seed, "jump_start", policy.version, False)
+        episode = EpisodeStepper(
+            self.env, jump.demo.seed, builder, on_step, getattr(policy, "executed", None)
+        )
+        observation = policy.spec.observation
+        for action in jump.demo.actions[: jump.replayed]:
+            if episode.done:
+                break
+            t0 = time.perf_counter()
+            policy.act(policy_input(episode.obs, observation))  # advances its state; the demo acts
+            episode.step(action, t0)
+        return episode
+
     def learned_episode(self, policy, on_step=None) -> EpisodeBuilder:
         """One episode with a ``PolicyRuntime`` (stochastic; its recurrent state starts afresh)."""
         episode, observation = self.begin_learned(policy, on_step), policy.spec.observation
@@ -103,4 +127,6 @@ class RolloutActor:
         return self.random_episode(on_step)
 
     def episode_id(self, b: EpisodeBuilder) -> str:
-        return f"{self.instance}-{b.meta['seed']}-{self.counter}"
+        """``<instance>-<seed>-<counter>`` of the episode just run: the seed it drew from this actor's
+        stream (its env seed, except in a jump start) and how many it drew."""
+        return f"{self.instance}-{self.stream_seed}-{self.counter}"
