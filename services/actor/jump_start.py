@@ -36,6 +36,19 @@ class JumpStart:
     replayed: int
 
 
+LEFT_BINS = ((1, 2), (3, 4), (5, 8), (9, 12), (13, None))
+"""Bins of the demonstration steps left at the handover, for the actor's charts: the last steps
+(the pull or the lift itself) apart from the approach."""
+
+
+def left_bin(left: int) -> str:
+    """The chart suffix of ``left`` demonstration steps left at the handover: ``1-2`` .. ``13+``."""
+    for lo, hi in LEFT_BINS:
+        if left >= lo and (hi is None or left <= hi):
+            return f"{lo}+" if hi is None else f"{lo}-{hi}"
+    raise ValueError(f"a jump start leaves the demonstration 1 or more steps, not {left}")
+
+
 def first_sitting(cfg: ActorConfig) -> ActorConfig:
     """The config under which actor 0 recorded the run's demonstrations: index 0, its first
     incarnation, one env, the first sitting's seed base (``jump_start_seed_base``)."""
@@ -69,4 +82,4 @@ def draw(rng: np.random.Generator, demos: list[Demo], share: float) -> JumpStart
     return JumpStart(demo, int(rng.integers(1, len(demo.actions))))
 
 
-__all__ = ["Demo", "JumpStart", "draw", "first_sitting", "regenerate"]
+__all__ = ["LEFT_BINS", "Demo", "JumpStart", "draw", "first_sitting", "left_bin", "regenerate"]

@@ -157,6 +157,8 @@ class EpisodeScalars:
         # a jump start's outcome is not the policy's from the reset: charted apart
         prefix = "charts/jump_start_" if b.meta["policy_kind"] == "jump_start" else "charts/"
         values = {f"{prefix}episodic_return": float(sum(b.rewards)), f"{prefix}success": float(b.success)}
+        if b.jump_left is not None:  # by how much of the demonstration was left to the policy
+            values[f"charts/jump_start_success_left_{jump_start.left_bin(b.jump_left)}"] = float(b.success)
         if lag is not None:
             values["charts/weights_lag"] = float(lag)
         if self.log.due:  # a rate over the whole window, added once

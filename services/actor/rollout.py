@@ -89,6 +89,7 @@ class RolloutActor:
         self.next_seed()
         policy.reset()
         builder = self.builder(jump.demo.seed, "jump_start", policy.version, False)
+        builder.jump_left = len(jump.demo.actions) - jump.replayed
         episode = EpisodeStepper(
             self.env, jump.demo.seed, builder, on_step, getattr(policy, "executed", None)
         )

@@ -22,6 +22,8 @@ class EpisodeBuilder:
         self.rewards: list[float] = []
         self.terminated: list[bool] = []
         self.truncated: list[bool] = []
+        self.jump_left: int | None = None
+        """A jump start's demonstration steps left at the handover (the actor's charts; not sent)."""
 
     def observe(self, obs: Observation) -> None:
         self.obs.append(obs)

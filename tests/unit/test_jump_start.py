@@ -36,6 +36,14 @@ def test_draw_follows_the_share_and_hands_over_inside_the_demo():
     assert jump_start.draw(rng, [_demo(1)], 1.0) is None and jump_start.draw(rng, [], 1.0) is None
 
 
+def test_the_steps_left_at_the_handover_fall_in_one_bin_each():
+    bins = [jump_start.left_bin(k) for k in range(1, 60)]
+    assert bins[:13] == ["1-2"] * 2 + ["3-4"] * 2 + ["5-8"] * 4 + ["9-12"] * 4 + ["13+"]
+    assert set(bins[12:]) == {"13+"}
+    with pytest.raises(ValueError, match="1 or more"):
+        jump_start.left_bin(0)
+
+
 class _Recorder:
     """A policy that records what it read and was told: the runtime's side of a jump start."""
 
@@ -75,7 +83,7 @@ def test_a_jump_start_replays_the_prefix_and_the_policy_follows_it(block_pull_de
     assert not episode.done and episode.builder.num_steps == t - 1
     b = episode.builder
     assert b.meta["policy_kind"] == "jump_start" and b.meta["seed"] == demo.seed and not b.meta["is_demo"]
-    assert b.meta["policy_version"] == 7 and policy.resets == 1
+    assert b.meta["policy_version"] == 7 and policy.resets == 1 and b.jump_left == 1
     np.testing.assert_array_equal(np.stack(b.actions), demo.actions[: t - 1])  # stored = executed
     np.testing.assert_array_equal(np.stack(policy.told), demo.actions[: t - 1])
     assert len(policy.inputs) == t - 1  # it read every observation the demo saw, the same ones
@@ -121,3 +129,28 @@ def test_an_actor_refuses_jump_starts_without_demonstrations_or_a_policy():
         ActorConfig(policy="random", jump_start=0.5, jump_start_demos=2)
     with pytest.raises(ValueError, match="jump_start"):
         ActorConfig(policy="learned", jump_start=-0.1, jump_start_demos=2)
+
+
+def test_a_jump_starts_outcome_is_charted_apart_from_the_policys(tmp_path):
+    from services.actor.main import EpisodeScalars
+    from services.episodes.builder import EpisodeBuilder
+
+    class _Log:
+        due, added = False, []
+
+        def add(self, values, step):
+            self.added.append((dict(values), step))
+
+    charts = EpisodeScalars(ActorConfig(tensorboard_dir=tmp_path), "actor-0", None, 0)
+    charts.log = _Log()
+    for kind, left, reward in (("learned", None, 1.0), ("jump_start", 6, 1.0), ("jump_start", 20, 0.0)):
+        b = EpisodeBuilder(task="block_pull", seed=1, actor_id="actor-0", policy_version=1,
+                           policy_kind=kind, is_demo=False, segments=("gripper",))  # fmt: skip
+        b.step(np.zeros(5), reward, reward > 0, False)
+        b.jump_left = left
+        charts.episode(b, 10, None)
+    (plain, _), (near, _), (far, step) = charts.log.added
+    assert plain == {"charts/episodic_return": 1.0, "charts/success": 1.0}
+    assert near == {"charts/jump_start_episodic_return": 1.0, "charts/jump_start_success": 1.0,
+                    "charts/jump_start_success_left_5-8": 1.0}  # fmt: skip
+    assert far["charts/jump_start_success_left_13+"] == 0.0 and "charts/success" not in far and step == 10
