@@ -95,8 +95,7 @@ def record(cfg: DemosConfig) -> dict:
     kept, attempts, seeds = 0, 0, []
     with McapRecorder(cfg.out, metadata=run_metadata(cfg), overwrite=cfg.overwrite) as rec:
         rec.write_config(CONFIG_NAME, json.dumps(config.to_jsonable(cfg)))
-        while kept < cfg.n and attempts < attempts_cap:
-            b = actor.expert_episode(kept)
+        for b in actor.demonstrations(cfg.n, attempts_cap):
             attempts += 1
             if not b.success:
                 log.info(

@@ -62,13 +62,9 @@ def regenerate(cfg: ActorConfig, env: ManipulationEnv, instance: str) -> list[De
     (``first_sitting``): the same expert episodes in the same order, failures skipped, within the
     same number of attempts. Nothing is published."""
     actor = RolloutActor(first_sitting(cfg), instance, env)
-    want, demos, attempts = actor.cfg.demos, [], 0
-    while len(demos) < want and attempts < want * actor.cfg.max_demo_attempts:
-        b = actor.expert_episode(len(demos))
-        attempts += 1
-        if b.success:
-            demos.append(Demo(int(b.meta["seed"]), np.stack(b.actions)))
-    return demos
+    n = actor.cfg.demos
+    attempts = actor.demonstrations(n, n * actor.cfg.max_demo_attempts)
+    return [Demo(int(b.meta["seed"]), np.stack(b.actions)) for b in attempts if b.success]
 
 
 def draw(rng: np.random.Generator, demos: list[Demo], share: float) -> JumpStart | None:

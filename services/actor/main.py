@@ -259,14 +259,9 @@ class ActorLoop:
     def demos(self) -> None:
         """The demonstrations, whole expert episodes on env 0 (as on actor 0); failures counted."""
         cfg, first = self.cfg, self.slots[0]
-        demos, attempts = 0, 0
-        while (
-            demos < cfg.demos
-            and attempts < cfg.demos * cfg.max_demo_attempts
-            and not self.ctx.shutdown.is_set()
-        ):
-            b = first.actor.expert_episode(demos, self.on_step)
-            attempts += 1
+        demos = 0
+        attempts = cfg.demos * cfg.max_demo_attempts
+        for b in first.actor.demonstrations(cfg.demos, attempts, self.on_step, self.ctx.shutdown.is_set):
             if b.success:
                 self.publish(first, b)
                 demos += 1

@@ -5,6 +5,7 @@ reuse. One episode itself is ``services.episodes.rollout.run_episode``."""
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -62,6 +63,18 @@ class RolloutActor:
                 return holder["expert"].act()
 
         return run_episode(self.env, seed, act, self.builder(seed, f"expert_{style}", -1, True), on_step)
+
+    def demonstrations(self, n: int, max_attempts: int, on_step=None, stop=None) -> Iterator[EpisodeBuilder]:
+        """Expert episodes until ``n`` succeeded, ``max_attempts`` were run or ``stop()`` says so, each
+        yielded as it ends, failures included (they do not count towards ``n``; the k-th success is
+        ``expert_episode(k)``'s). What the actor publishes first, `mea demos` records and jump starts
+        make again, in one order."""
+        kept, attempts = 0, 0
+        while kept < n and attempts < max_attempts and not (stop is not None and stop()):
+            b = self.expert_episode(kept, on_step)
+            attempts += 1
+            kept += b.success
+            yield b
 
     def random_episode(self, on_step=None) -> EpisodeBuilder:
         """Uniform actions in [-1, 1]^5, or the env's own random action where it has one (the

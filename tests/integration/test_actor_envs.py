@@ -14,34 +14,17 @@ import pytest
 import torch
 
 from proto.seeds import ACTOR_SEED_STRIDE
-from proto.topics import EPISODES_RAW
 from proto.weights import WeightsBlob
 from services.actor.config import ActorConfig
-from services.actor.main import run
 from services.algorithms.networks import PRESETS, build_actor
 from services.algorithms.policy import PolicyRuntime, PolicySpec, actor_tensors
-from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
-from services.common.weights import WeightsServer
 from services.episodes.rollout import policy_image
 from services.tasks.env import Observation
+from tests.helpers.actor_run import published_episodes
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 K = 3
-
-
-def _episodes(cfg: ActorConfig, blob: WeightsBlob) -> list:
-    """What one actor publishes with ``blob`` as its weights (no learner: no gate)."""
-    hub = Hub()
-    observer = InProcBus(hub)
-    sub = observer.subscribe(EPISODES_RAW, capacity=256)
-    server = WeightsServer(observer, "learner-0")
-    server.publish(blob)
-    try:
-        assert run(cfg, bus_factory=lambda _c: InProcBus(hub)) == 0
-        return [d.message for d in sub.drain()]
-    finally:
-        server.close()
 
 
 def _by_stream(episodes: list) -> dict[int, list]:
@@ -61,7 +44,7 @@ def test_k_envs_in_one_actor_run_what_k_single_env_actors_run():
     base = ActorConfig(
         task="block_pull", policy="learned", follow_gate=False, points_per_segment=32, service=service
     )
-    vector = _episodes(
+    vector = published_episodes(
         ActorConfig(**{**base.__dict__, "envs": K, "demos": 1, "random_steps": 20, "episodes": 2 * K}), blob
     )
     streams = _by_stream(vector)
@@ -74,7 +57,7 @@ def test_k_envs_in_one_actor_run_what_k_single_env_actors_run():
         alone_cfg = ActorConfig(**{**base.__dict__, "index": j, "demos": 1 if j == 0 else 0,
                                    "random_steps": 20 if j == 0 else 0,
                                    "episodes": sum(not ep.is_demo for ep in streams[j])})  # fmt: skip
-        alone = _episodes(alone_cfg, blob)
+        alone = published_episodes(alone_cfg, blob)
         assert [ep.seed for ep in alone] == [ep.seed for ep in streams[j]], j
         for a, v in zip(alone, streams[j], strict=True):
             assert (a.policy_kind, a.is_demo) == (v.policy_kind, v.is_demo)

@@ -8,17 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from proto.topics import EPISODES_RAW
 from proto.weights import WeightsBlob
 from services.actor import jump_start
 from services.actor.config import ActorConfig
-from services.actor.main import run
 from services.algorithms.networks import PRESETS, build_actor
 from services.algorithms.policy import PolicySpec, actor_tensors
-from services.common.bus import Hub, InProcBus
 from services.common.config import ServiceConfig
-from services.common.weights import WeightsServer
 from services.tasks import make_env
+from tests.helpers.actor_run import published_episodes
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -37,16 +34,7 @@ def test_an_actor_jump_starts_from_the_runs_demonstration():
         (demo,) = jump_start.regenerate(cfg, env, "check")  # what actor 0 recorded in the first sitting
     finally:
         env.close()
-    hub = Hub()
-    observer = InProcBus(hub)
-    sub = observer.subscribe(EPISODES_RAW, capacity=64)
-    server = WeightsServer(observer, "learner-0")
-    server.publish(blob)
-    try:
-        assert run(cfg, bus_factory=lambda _c: InProcBus(hub)) == 0
-        episodes = [d.message for d in sub.drain()]
-    finally:
-        server.close()
+    episodes = published_episodes(cfg, blob)
     assert len(episodes) == 6 and len({ep.episode_id for ep in episodes}) == 6
     assert all(
         ep.policy_kind == "jump_start" and not ep.is_demo and ep.policy_version == 3 for ep in episodes
