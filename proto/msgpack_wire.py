@@ -51,7 +51,7 @@ class Limits:
     max_string: int = 1024
     """Longest string field, in characters."""
     max_entries: int = 4096
-    """Most entries in any map or list (checked at each header)."""
+    """Most entries in any map or list."""
     max_depth: int = 32
     """Deepest nesting of maps and lists."""
 

@@ -5,12 +5,14 @@ Design notes: docs/architecture-notes.md, services/algorithms/networks.py."""
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 from proto.actions import ACTION_DIM
 from services.algorithms.equivariant import (
@@ -33,6 +35,7 @@ LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 GROUP_NAMES = ("c4", "d4", "none")
 CRITIC_INPUTS = ("image", "state")
 XY_RANGES = ("box", "disc")
+KERNEL_BASES = ("free", "steerable")
 PLAIN_FIELD_CHANNELS = 4
 """Channels per 'field' of the non-equivariant twin (matches the C4 channel counts)."""
 
@@ -70,7 +73,9 @@ class NetConfig:
     state_critic_hidden: tuple[int, ...] = (256, 256)
     """Widths of the state critic's Q MLPs."""
     xy_range: str = "box"
-    """(dx, dy): box (tanh per axis) or disc (radial tanh: any turn exact)."""
+    """(dx, dy): box (tanh per axis) or disc (radial tanh)."""
+    kernel_basis: str = "free"
+    """Encoder kernels: free or steerable (escnn's basis, c4)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "encoder", tuple(tuple(int(v) for v in layer) for layer in self.encoder))
@@ -78,6 +83,7 @@ class NetConfig:
         object.__setattr__(self, "state_critic_hidden", tuple(int(v) for v in self.state_critic_hidden))
         if self.xy_range not in XY_RANGES:
             raise ValueError(f"xy_range must be one of {XY_RANGES}, got {self.xy_range!r}")
+        self._check_kernel_basis()
         if self.critic_input not in CRITIC_INPUTS:
             raise ValueError(f"critic_input must be one of {CRITIC_INPUTS}, got {self.critic_input!r}")
         if not self.state_critic_hidden or min(self.state_critic_hidden) < 1:
@@ -111,6 +117,18 @@ class NetConfig:
                 raise ValueError(
                     f"mlp_hidden={self.mlp_hidden} has a width not divisible by |{self.group}| = {G}"
                 )
+
+    def _check_kernel_basis(self) -> None:
+        if self.kernel_basis not in KERNEL_BASES:
+            raise ValueError(f"kernel_basis must be one of {KERNEL_BASES}, got {self.kernel_basis!r}")
+        if self.kernel_basis == "free":
+            return
+        if self.group != "c4":
+            raise ValueError(f"kernel_basis steerable is built for group c4, not {self.group!r}")
+        if importlib.util.find_spec("e2cnn") is None:
+            raise ValueError(
+                "kernel_basis steerable needs e2cnn, which is not installed: pip install 'mea-rl[steerable]'"
+            )
 
     @property
     def channels_per_field(self) -> int:
@@ -216,6 +234,12 @@ class ImageEncoder(nn.Module):
                 c_out = cfg.image_embed if fields is None else fields * PLAIN_FIELD_CHANNELS
                 layers.append(_plain_init(nn.Conv2d(c_in, c_out, k, s), _RELU_GAIN))
                 c_in = c_out
+            elif cfg.kernel_basis == "steerable":
+                f_out = cfg.image_embed // group.order if fields is None else fields
+                layers.append(
+                    SteerableConv2d(cfg.in_channels if fields_in is None else None, fields_in, f_out, k, s)
+                )
+                fields_in = f_out
             else:
                 f_out = cfg.image_embed // group.order if fields is None else fields
                 if fields_in is None:
@@ -229,6 +253,51 @@ class ImageEncoder(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         x = x.contiguous(memory_format=torch.channels_last)
         return self.net(x).flatten(1)
+
+
+class SteerableConv2d(nn.Module):
+    """A C4 conv whose kernel lies in e2cnn's steerable basis (the public Equi-RSAC encoder's escnn
+    R2Conv: rings with Gaussian radial profiles, band-limited angular frequencies), expanded once per
+    forward and run as one conv2d. Input: ``trivial`` channels, or ``fields_in`` regular fields;
+    output ``fields_out`` regular fields, in this module's channel order (field-major, group minor,
+    the same roll under a quarter turn). e2cnn builds the basis only, imported here lazily; its
+    module is kept out of the state dict (its buffer names are not weights keys), and only the
+    basis coefficients and field biases are this module's parameters."""
+
+    def __init__(
+        self, trivial: int | None, fields_in: int | None, fields_out: int, k: int, stride: int
+    ) -> None:
+        super().__init__()
+        from e2cnn import gspaces
+        from e2cnn import nn as enn
+
+        space = gspaces.Rot2dOnR2(4)
+        reprs = trivial * [space.trivial_repr] if trivial else (fields_in or 0) * [space.regular_repr]
+        conv = enn.R2Conv(enn.FieldType(space, reprs), enn.FieldType(space, fields_out * [space.regular_repr]),
+                          k, stride=stride)  # fmt: skip
+        object.__setattr__(self, "_conv", conv)  # not a submodule
+        self.weight, self.bias = conv.weights, conv.bias
+        self.stride = stride
+
+    def _apply(self, fn, recurse: bool = True):
+        super()._apply(fn, recurse)
+        self._conv._apply(fn)
+        self._conv.weights, self._conv.bias = self.weight, self.bias
+        return self
+
+    def __deepcopy__(self, memo):
+        import copy
+
+        clone = type(self).__new__(type(self))
+        memo[id(self)] = clone
+        for key, value in self.__dict__.items():
+            object.__setattr__(clone, key, copy.deepcopy(value, memo))
+        clone._conv.weights, clone._conv.bias = clone.weight, clone.bias
+        return clone
+
+    def forward(self, x: Tensor) -> Tensor:
+        weight, bias = self._conv.expand_parameters()
+        return F.conv2d(x, weight, bias, self.stride)
 
 
 def encode_real(

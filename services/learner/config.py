@@ -128,7 +128,7 @@ class LearnerConfig:
     queue: int = 64
     """Incoming episodes buffered before ingest."""
     inbox_mb: int = 1024
-    """Inbox MiB while a checkpoint holds the replay; then backpressure."""
+    """Inbox MiB while a checkpoint holds the replay."""
     gate_seconds: float = 0.5
     """Period of the replay gate."""
     service: ServiceConfig = ServiceConfig()

@@ -6,6 +6,7 @@ every parameter, and NetConfig validation / round trips."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 
@@ -308,3 +309,68 @@ def test_encoding_padding_and_zeroing_it_equals_leaving_it_out_values_and_gradie
     plain = encode_real(actor.encoder, images, None, skip_padding=True)
     assert torch.equal(encode_real(actor.encoder, images, full, skip_padding=True), plain)
     assert_close_tol(encode_real(actor.encoder, images, full, skip_padding=False), plain)
+
+
+# ------------------------------------------------------------------------------------------------
+# the steerable kernel basis (the public encoder's escnn R2Conv basis, built by e2cnn)
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preset", ["paper", "cpu-small"])
+@torch.no_grad()
+def test_steerable_encoders_are_c4_equivariant_with_the_public_parameter_count(preset: str) -> None:
+    cfg = NetConfig.preset(preset, kernel_basis="steerable")
+    torch.manual_seed(0)
+    actor, critic = build_actor(cfg), build_critic(cfg)
+    free = NetConfig.preset(preset)
+    n = sum(p.numel() for p in actor.encoder.parameters())
+    # tasks-and-baselines.md section 9: the public C4 encoder (escnn) has 33,784 parameters where
+    # unconstrained k x k kernels have 55,400
+    if preset == "paper":
+        assert n == 33_784
+        assert sum(p.numel() for p in build_actor(free).encoder.parameters()) == 55_400
+    images, prev, actions = inputs(4)
+    mean, _, (h, _) = actor(images, prev)
+    feats, _ = critic.features(images, prev)
+    q1, _ = critic.q(feats, actions)
+    G = get_group("c4")
+    for g in G.elements:
+        mean_g, _, (h_g, _) = actor(transform_images(images, g), transform_actions(prev, g))
+        assert_close_tol(mean_g, transform_actions(mean, g))
+        assert_close_tol(h_g, transform_regular(h, g, G))
+        feats_g, _ = critic.features(transform_images(images, g), transform_actions(prev, g))
+        assert_close_tol(critic.q(feats_g, transform_actions(actions, g))[0], q1)
+
+
+def test_steerable_weights_are_plain_state_dicts_that_load_copy_and_train() -> None:
+    cfg = NetConfig.preset("cpu-small", kernel_basis="steerable")
+    torch.manual_seed(1)
+    actor, other = build_actor(cfg), build_actor(cfg)
+    # only parameters, under ordinary names (the weights message refuses e2cnn's buffer names)
+    assert set(actor.state_dict()) == {n for n, _ in actor.named_parameters()}
+    assert all(name.replace(".", "").replace("_", "").isalnum() for name in actor.state_dict())
+    images, prev, _ = inputs(5, B=1, T=2)
+    with torch.no_grad():
+        assert max_diff(other(images, prev)[0], actor(images, prev)[0]) > 1e-4
+        other.load_state_dict(actor.state_dict())
+        torch.testing.assert_close(other(images, prev)[0], actor(images, prev)[0])
+        twin = copy.deepcopy(actor)
+        for p in actor.parameters():
+            p.add_(0.05)
+        torch.testing.assert_close(twin(images, prev)[0], other(images, prev)[0])  # the copy kept its own
+        assert max_diff(twin(images, prev)[0], actor(images, prev)[0]) > 1e-4
+    actor.eval()
+    assert set(actor.state_dict()) == set(other.state_dict())
+    actor.train()
+    before = [p.detach().clone() for p in actor.encoder.parameters()]
+    actor(images, prev)[0].sum().backward()
+    torch.optim.SGD(actor.parameters(), lr=0.1).step()
+    assert all(max_diff(b, p) > 0 for b, p in zip(before, actor.encoder.parameters(), strict=True))
+
+
+@pytest.mark.parametrize("group", ["d4", "none"])
+def test_steerable_basis_is_refused_outside_c4(group: str) -> None:
+    with pytest.raises(ValueError, match="steerable is built for group c4"):
+        NetConfig.preset("cpu-small", group=group, kernel_basis="steerable")
+    with pytest.raises(ValueError, match="kernel_basis must be one of"):
+        NetConfig.preset("cpu-small", kernel_basis="smooth")

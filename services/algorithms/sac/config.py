@@ -46,7 +46,7 @@ class SacSettings:
     # policy's own mean action, so the actor never follows the critic's gradient into actions that
     # no episode tried; crr_beta 0 keeps an action where its advantage is > 0, else weighs exp(A / beta)
     actor_objective: str = "sac"
-    """Actor loss: sac (Q's action gradient) or crr (filtered likelihood)."""
+    """Actor loss: sac (Q's action gradient) or crr."""
     crr_beta: float = 0.0
     """crr weights: 0 binary (A > 0), else exp(A / beta) capped at 20."""
     # critic warm-up: BC (where on) still trains the actor meanwhile

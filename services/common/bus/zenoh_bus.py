@@ -85,7 +85,7 @@ class ZenohConfig:
     listen: tuple[str, ...] = ()
     """Endpoints to listen on; empty: the mode's."""
     multicast_scouting: bool = False
-    """Multicast discovery (off: explicit endpoints only)."""
+    """Multicast discovery (off: endpoints only)."""
     namespace: str = "default"
     """Key namespace separating runs on one network."""
     config_file: Annotated[str, tyro.conf.arg(aliases=("--zenoh-config",))] = ""
