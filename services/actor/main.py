@@ -259,9 +259,8 @@ class ActorLoop:
     def demos(self) -> None:
         """The demonstrations, whole expert episodes on env 0 (as on actor 0); failures counted."""
         cfg, first = self.cfg, self.slots[0]
-        demos = 0
-        attempts = cfg.demos * cfg.max_demo_attempts
-        for b in first.actor.demonstrations(cfg.demos, attempts, self.on_step, self.ctx.shutdown.is_set):
+        demos, max_attempts = 0, cfg.demos * cfg.max_demo_attempts
+        for b in first.actor.demonstrations(cfg.demos, max_attempts, self.on_step, self.ctx.shutdown.is_set):
             if b.success:
                 self.publish(first, b)
                 demos += 1

@@ -234,15 +234,11 @@ class ImageEncoder(nn.Module):
                 c_out = cfg.image_embed if fields is None else fields * PLAIN_FIELD_CHANNELS
                 layers.append(_plain_init(nn.Conv2d(c_in, c_out, k, s), _RELU_GAIN))
                 c_in = c_out
-            elif cfg.kernel_basis == "steerable":
-                f_out = cfg.image_embed // group.order if fields is None else fields
-                layers.append(
-                    SteerableConv2d(cfg.in_channels if fields_in is None else None, fields_in, f_out, k, s)
-                )
-                fields_in = f_out
             else:
                 f_out = cfg.image_embed // group.order if fields is None else fields
-                if fields_in is None:
+                if cfg.kernel_basis == "steerable":
+                    layers.append(SteerableConv2d(cfg.in_channels, fields_in, f_out, k, s))
+                elif fields_in is None:
                     layers.append(LiftConv2d(group, cfg.in_channels, f_out, k, s))
                 else:
                     layers.append(GroupConv2d(group, fields_in, f_out, k, s))
@@ -258,21 +254,19 @@ class ImageEncoder(nn.Module):
 class SteerableConv2d(nn.Module):
     """A C4 conv whose kernel lies in e2cnn's steerable basis (the public Equi-RSAC encoder's escnn
     R2Conv: rings with Gaussian radial profiles, band-limited angular frequencies), expanded once per
-    forward and run as one conv2d. Input: ``trivial`` channels, or ``fields_in`` regular fields;
-    output ``fields_out`` regular fields, in this module's channel order (field-major, group minor,
-    the same roll under a quarter turn). e2cnn builds the basis only, imported here lazily; its
-    module is kept out of the state dict (its buffer names are not weights keys), and only the
-    basis coefficients and field biases are this module's parameters."""
+    forward and run as one conv2d. Input: ``in_channels`` trivial channels, or ``fields_in`` regular
+    fields where given; output ``fields_out`` regular fields, in this module's channel order
+    (field-major, group minor, the same roll under a quarter turn). e2cnn builds the basis only,
+    imported here lazily; its module is kept out of the state dict (its buffer names are not weights
+    keys), and only the basis coefficients and field biases are this module's parameters."""
 
-    def __init__(
-        self, trivial: int | None, fields_in: int | None, fields_out: int, k: int, stride: int
-    ) -> None:
+    def __init__(self, in_channels: int, fields_in: int | None, fields_out: int, k: int, stride: int) -> None:
         super().__init__()
         from e2cnn import gspaces
         from e2cnn import nn as enn
 
         space = gspaces.Rot2dOnR2(4)
-        reprs = trivial * [space.trivial_repr] if trivial else (fields_in or 0) * [space.regular_repr]
+        reprs = in_channels * [space.trivial_repr] if fields_in is None else fields_in * [space.regular_repr]
         conv = enn.R2Conv(enn.FieldType(space, reprs), enn.FieldType(space, fields_out * [space.regular_repr]),
                           k, stride=stride)  # fmt: skip
         object.__setattr__(self, "_conv", conv)  # not a submodule
