@@ -6,8 +6,9 @@ critic's value of the recorded action beside the same move turned a quarter, rev
 random actions and the policy's mean, step by step back from the episode's end and from its start
 (``services.algorithms.sac.critic_profile``). With ``--handover N`` it also plays the policy in the
 simulator from the first N recorded demonstrations' own states, k steps before their end, beside
-the critic's value of the policy's action there (``mea_tools.bench.handover``). Nothing is written;
-the run may be training."""
+the critic's value of the policy's action there (``mea_tools.bench.handover``); with ``--behaviour N``
+it plays the policy from the evaluator's first N held-out starts and sums up what the fingers and
+objects did (``mea_tools.bench.behaviour``). Nothing is written; the run may be training."""
 
 from __future__ import annotations
 
@@ -62,6 +63,8 @@ class CriticBenchConfig:
     """Play the policy from the first this many recorded demonstrations' own states (0: off)."""
     handover_steps: tuple[int, ...] = (1, 2, 4, 8)
     """Steps before each demonstration's end at which the policy takes over."""
+    behaviour: int = 0
+    """Held-out starts from which the policy plays, to sum up what it did (0: off)."""
     json: bool = False
     """Print exactly one JSON object instead of tables."""
 
@@ -72,6 +75,8 @@ class CriticBenchConfig:
             raise ValueError("--steps, --episodes, --random-actions, --batch and --threads must be >= 1")
         if self.handover < 0:
             raise ValueError(f"--handover must be >= 0, got {self.handover}")
+        if self.behaviour < 0:
+            raise ValueError(f"--behaviour must be >= 0, got {self.behaviour}")
         if not self.handover_steps or min(self.handover_steps) < 1:
             raise ValueError(f"--handover-steps must be one or more integers >= 1, got {self.handover_steps}")
 
@@ -132,7 +137,7 @@ def _jsonable(profile: StepProfile) -> dict[str, Any]:
 def run(cfg: CriticBenchConfig) -> dict:
     assert cfg.run is not None
     algo = _algorithm(cfg.run)
-    inputs = _handover_inputs(cfg, algo) if cfg.handover else None
+    inputs = _sim_inputs(cfg, algo) if cfg.handover or cfg.behaviour else None
     try:
         path, learner, replay_state, _ = checkpoint.load_newest(cfg.run / "learner" / "checkpoints")
     except checkpoint.CheckpointError as exc:
@@ -160,8 +165,10 @@ def run(cfg: CriticBenchConfig) -> dict:
         if not cfg.json:
             for p in profiles:
                 print(_table(kind, int(slots.size), p) + "\n")
-    if inputs is not None:
+    if inputs is not None and cfg.handover:
         out["handover"] = _handover(cfg, algo, agent, replay, inputs)
+    if inputs is not None and cfg.behaviour:
+        out["behaviour"] = _behaviour(cfg, algo, agent, inputs)
     if cfg.json:
         json.dump(out, sys.stdout)
         print()
@@ -173,22 +180,23 @@ def run(cfg: CriticBenchConfig) -> dict:
 
 
 @dataclass(frozen=True)
-class _HandoverInputs:
+class _SimInputs:
     demos: list[RecordedDemo]
     task: str
     settings: EnvSettings
 
 
-def _handover_inputs(cfg: CriticBenchConfig, algo: SacConfig) -> _HandoverInputs:
-    """What ``--handover`` plays, checked before anything is printed (refused in one line)."""
+def _sim_inputs(cfg: CriticBenchConfig, algo: SacConfig) -> _SimInputs:
+    """What ``--handover`` and ``--behaviour`` play, checked before anything is printed (refused in one
+    line); the demonstrations only for ``--handover``."""
     assert cfg.run is not None
     # deferred: pybullet and the tasks, needed only for the handover
     from mea_tools.bench.handover import recorded_demos
     from services.play import run_env_settings, run_setting
     from services.tasks import TASK_CLASSES
 
-    demos = recorded_demos(cfg.run, cfg.handover)
-    if not demos:
+    demos = recorded_demos(cfg.run, cfg.handover) if cfg.handover else []
+    if cfg.handover and not demos:
         refuse(
             PROG, f"{cfg.run}: no recorded demonstrations under {cfg.run}/episodes (--handover needs them)"
         )
@@ -199,11 +207,11 @@ def _handover_inputs(cfg: CriticBenchConfig, algo: SacConfig) -> _HandoverInputs
         settings = run_env_settings(cfg.run, algo.observation)
     except ValueError as exc:
         refuse(PROG, str(exc))
-    return _HandoverInputs(demos, task, settings)
+    return _SimInputs(demos, task, settings)
 
 
 def _handover(
-    cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceReplay, inputs: _HandoverInputs
+    cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceReplay, inputs: _SimInputs
 ) -> dict[str, Any]:
     """The handover plays beside the critic's Q of the policy's mean on the same demonstrations."""
     from mea_tools.bench.handover import handover_table, play_handover, summarize
@@ -243,6 +251,28 @@ def _handover(
     return {"demos": len(demos), "in_replay": int(slots.size), "reproduced": reproduced,
             "steps": list(cfg.handover_steps), "plays": plays_json,
             "critic_policy_mean": [_num(critic.get(k, math.nan)) for k in cfg.handover_steps]}  # fmt: skip
+
+
+def _behaviour(cfg: CriticBenchConfig, algo: SacConfig, agent, inputs: _SimInputs) -> dict[str, Any]:
+    """The policy's mean action from the evaluator's first ``cfg.behaviour`` held-out starts, summed up."""
+    from mea_tools.bench.behaviour import behaviour_table, object_labels, play_behaviour, summarize_behaviour
+    from proto.seeds import EVAL_SEED_BASE
+    from services.algorithms.sac.policy import ActorRuntime, PolicySpec
+    from services.episodes.rollout import policy_input
+    from services.tasks import make_env
+
+    runtime = ActorRuntime.of(agent.actor, PolicySpec(algo.net, algo.observation))
+    observe = functools.partial(policy_input, observation=algo.observation)
+    env = make_env(inputs.task, inputs.settings)
+    try:
+        labels = object_labels(env)
+        plays = [play_behaviour(env, runtime, observe, EVAL_SEED_BASE + i) for i in range(cfg.behaviour)]
+    finally:
+        env.close()
+    summary = summarize_behaviour(plays, labels)
+    if not cfg.json:
+        print(behaviour_table(summary, labels) + "\n")
+    return {k: v if isinstance(v, int) else _num(v) for k, v in summary.items()}
 
 
 __all__ = ["CriticBenchConfig", "run"]
