@@ -2,10 +2,11 @@
 privileged state (`mea bench critic --behaviour N`).
 
 A success rate says that a policy fails, not how. Played by its mean action, the episode is summed
-up by what the fingers and the objects did: when the fingers first came low among the objects, which
-object the arm came to first and for how many steps it was at each, how far each object moved, and how the
-distance between the two objects changed (Block Pull succeeds when it closes). The policy reads only
-its observation; the privileged state is read by this summary alone."""
+up by what the fingers and the objects did: when the fingers first came low among the objects,
+which object the arm came to first (the first listed on a tie) and for how many steps it was at
+each, how far each object moved, and how the distance between the two objects changed (Block Pull
+succeeds when it closes). The policy reads only its observation; the privileged state is read by
+this summary alone."""
 
 from __future__ import annotations
 
