@@ -18,6 +18,8 @@ import numpy as np
 NEAR_BAND = 0.02
 """The arm within this distance (m) of an object is at it. Not contact: a pushed object slides on
 while the env rests after each step, so a push leaves a gap of a centimetre or so."""
+GAP_BAND = 0.01
+"""The objects' distance counts as closed (opened) when it ended this much (m) below (above) its start."""
 
 
 @dataclass(frozen=True)
@@ -53,8 +55,8 @@ def _labelled(env) -> tuple[tuple[str, ...], list[int]]:
     try:
         fixed = int(env.task.fixed_index())
     except (AttributeError, ValueError):
-        return names, list(range(len(names)))
-    if len(names) != 2:
+        fixed = None
+    if fixed is None or len(names) != 2:
         return names, list(range(len(names)))
     return ("immovable", "movable"), [fixed, 1 - fixed]
 
@@ -120,8 +122,8 @@ def summarize_behaviour(plays: Sequence[Behaviour], labels: Sequence[str]) -> di
         "mean_low_at": float(np.mean(low)) if low else float("nan"),
         "gap_start": float(np.mean([p.gap[0] for p in plays])),
         "gap_end": float(np.mean([p.gap[1] for p in plays])),
-        "gap_closed": sum(p.gap[1] < p.gap[0] - 0.01 for p in plays) / n,
-        "gap_opened": sum(p.gap[1] > p.gap[0] + 0.01 for p in plays) / n,
+        "gap_closed": sum(p.gap[1] < p.gap[0] - GAP_BAND for p in plays) / n,
+        "gap_opened": sum(p.gap[1] > p.gap[0] + GAP_BAND for p in plays) / n,
     }
     for i, label in enumerate(labels):
         out[f"near_{label}"] = sum(p.near[i] > 0 for p in plays) / n
@@ -134,10 +136,10 @@ def behaviour_table(summary: dict[str, float | int], labels: Sequence[str]) -> s
     s = summary
     lines = [
         f"behaviour: the policy's mean action from {s['episodes']} held-out starts, read from the simulator's "
-        "privileged state (fingers low: below the objects' centres; at an object: the arm within 2 cm of it; "
-        "moved and distances in cm)",
+        "privileged state (fingers low: below the objects' centres; at an object: the arm within "
+        f"{100 * NEAR_BAND:g} cm of it; moved and distances in cm)",
         "| success | fingers low | low within 5 steps | first step low | objects' distance start -> end "
-        "| closed by > 1 cm | opened by > 1 cm |",
+        f"| closed by > {100 * GAP_BAND:g} cm | opened by > {100 * GAP_BAND:g} cm |",
         "|---|---|---|---|---|---|---|",
         f"| {s['success']:.2f} | {s['low']:.2f} | {s['low_by_5']:.2f} | {s['mean_low_at']:.1f} | "
         f"{100 * s['gap_start']:.1f} -> {100 * s['gap_end']:.1f} | {s['gap_closed']:.2f} | {s['gap_opened']:.2f} |",
@@ -152,6 +154,7 @@ def behaviour_table(summary: dict[str, float | int], labels: Sequence[str]) -> s
 
 
 __all__ = [
+    "GAP_BAND",
     "NEAR_BAND",
     "Behaviour",
     "behaviour_table",

@@ -12,10 +12,12 @@ objects did (``mea_tools.bench.behaviour``). Nothing is written; the run may be 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
 import sys
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -190,7 +192,7 @@ def _sim_inputs(cfg: CriticBenchConfig, algo: SacConfig) -> _SimInputs:
     """What ``--handover`` and ``--behaviour`` play, checked before anything is printed (refused in one
     line); the demonstrations only for ``--handover``."""
     assert cfg.run is not None
-    # deferred: pybullet and the tasks, needed only for the handover
+    # deferred: pybullet and the tasks, needed only for the plays in the simulator
     from mea_tools.bench.handover import recorded_demos
     from services.play import run_env_settings, run_setting
     from services.tasks import TASK_CLASSES
@@ -210,14 +212,32 @@ def _sim_inputs(cfg: CriticBenchConfig, algo: SacConfig) -> _SimInputs:
     return _SimInputs(demos, task, settings)
 
 
+@contextlib.contextmanager
+def _policy_in_simulator(algo: SacConfig, agent, inputs: _SimInputs) -> Iterator[tuple[Any, Any, Callable]]:
+    """(env, runtime, observe): a simulator of the run's task, closed on exit, and the checkpoint's
+    policy acting by its mean action on what ``observe`` makes of an observation."""
+    from services.algorithms.sac.policy import ActorRuntime, PolicySpec
+    from services.episodes.rollout import policy_input
+    from services.tasks import make_env
+
+    runtime = ActorRuntime.of(agent.actor, PolicySpec(algo.net, algo.observation))
+    observe = functools.partial(policy_input, observation=algo.observation)
+    env = make_env(inputs.task, inputs.settings)
+    try:
+        yield env, runtime, observe
+    finally:
+        env.close()
+
+
+def _summary_json(summary: dict[str, float | int]) -> dict[str, float | int | None]:
+    return {k: v if isinstance(v, int) else _num(v) for k, v in summary.items()}
+
+
 def _handover(
     cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceReplay, inputs: _SimInputs
 ) -> dict[str, Any]:
     """The handover plays beside the critic's Q of the policy's mean on the same demonstrations."""
     from mea_tools.bench.handover import handover_table, play_handover, summarize
-    from services.algorithms.sac.policy import ActorRuntime, PolicySpec
-    from services.episodes.rollout import policy_input
-    from services.tasks import make_env
 
     demos = inputs.demos
     # the critic's side: the same original episodes as they sit in the replay (an evicted one is not)
@@ -229,14 +249,9 @@ def _handover(
         prof = step_profile(agent.actor, agent.critic_target, batches, steps=max(cfg.handover_steps),
                             from_end=True, random_actions=1)  # fmt: skip
         critic = {k: float(v) for k, v in zip(prof.steps, prof.values["policy_mean"], strict=True)}
-    runtime = ActorRuntime.of(agent.actor, PolicySpec(algo.net, algo.observation))
-    observe = functools.partial(policy_input, observation=algo.observation)
-    env = make_env(inputs.task, inputs.settings)
-    try:
+    with _policy_in_simulator(algo, agent, inputs) as (env, runtime, observe):
         replays = [play_handover(env, runtime, observe, d, 0) for d in demos]
         plays = {k: [play_handover(env, runtime, observe, d, k) for d in demos] for k in cfg.handover_steps}
-    finally:
-        env.close()
     reproduced = sum(p.success and p.policy_steps == 0 for p in replays)
     summaries = {k: summarize(plays[k], algo.sac.gamma) for k in cfg.handover_steps}
     note = f"{reproduced} of {len(demos)} demonstrations reproduced their success when replayed whole"
@@ -244,10 +259,7 @@ def _handover(
         note += f"; the critic's column covers the {slots.size} still in the replay"
     if not cfg.json:
         print(handover_table(cfg.handover_steps, summaries, critic, note) + "\n")
-    plays_json = {
-        str(k): {n: v if isinstance(v, int) else _num(v) for n, v in summaries[k].items()}
-        for k in cfg.handover_steps
-    }
+    plays_json = {str(k): _summary_json(summaries[k]) for k in cfg.handover_steps}
     return {"demos": len(demos), "in_replay": int(slots.size), "reproduced": reproduced,
             "steps": list(cfg.handover_steps), "plays": plays_json,
             "critic_policy_mean": [_num(critic.get(k, math.nan)) for k in cfg.handover_steps]}  # fmt: skip
@@ -257,22 +269,14 @@ def _behaviour(cfg: CriticBenchConfig, algo: SacConfig, agent, inputs: _SimInput
     """The policy's mean action from the evaluator's first ``cfg.behaviour`` held-out starts, summed up."""
     from mea_tools.bench.behaviour import behaviour_table, object_labels, play_behaviour, summarize_behaviour
     from proto.seeds import EVAL_SEED_BASE
-    from services.algorithms.sac.policy import ActorRuntime, PolicySpec
-    from services.episodes.rollout import policy_input
-    from services.tasks import make_env
 
-    runtime = ActorRuntime.of(agent.actor, PolicySpec(algo.net, algo.observation))
-    observe = functools.partial(policy_input, observation=algo.observation)
-    env = make_env(inputs.task, inputs.settings)
-    try:
+    with _policy_in_simulator(algo, agent, inputs) as (env, runtime, observe):
         labels = object_labels(env)
         plays = [play_behaviour(env, runtime, observe, EVAL_SEED_BASE + i) for i in range(cfg.behaviour)]
-    finally:
-        env.close()
     summary = summarize_behaviour(plays, labels)
     if not cfg.json:
         print(behaviour_table(summary, labels) + "\n")
-    return {k: v if isinstance(v, int) else _num(v) for k, v in summary.items()}
+    return _summary_json(summary)
 
 
 __all__ = ["CriticBenchConfig", "run"]
