@@ -10,22 +10,27 @@
 #   install  the carried wheels into /tmp/site; PYTHONPATH=/tmp/site:$PWD
 #   env      import pybullet, zenoh, mcap, torch; Python, torch, CUDA versions, the GPU, nvidia-smi
 #   tests    every test file marking CUDA tests (its CPU tests too) and the SAC/trainer unit tests
-#   bench    `mea bench learner --device cuda` for paper (C4, D4, the plain twin) and cpu-small,
-#            paper C4 and cpu-small again with --cuda-graphs:
-#            ms/update p50/p99; then the same presets on this machine's CPU, the baseline
-#   run      a short paper-preset run (Block Pull, EquiObs, 80 demos, 1,000 random steps, 3,000 env
-#            steps, 8 actors, the learner on CUDA) in /tmp, stopped by --duration-seconds at what is
-#            left of the check's time; its evaluation curve, summary, GPU and host memory
+#   bench    `mea bench learner --device cuda` for paper C4 and cpu-small C4, eager and with
+#            --cuda-graphs: ms/update p50/p99 (the CPU baseline is in docs/results.md, "On a GPU")
+#   run      the paper protocol of issue #31 (Block Pull, `mea`, 2 demos, the paper preset, 1 update
+#            per env step, 40K env steps, 20 held-out seeds every 1K, 8 actors, the learner on CUDA,
+#            with --cuda-graphs where the graphed update passed its test and timed faster) in /tmp,
+#            stopped by --duration-seconds at what is left of the check's time less the system
+#            bench's share; its evaluation curve, env steps/s, summary, GPU and host memory
+#   system   `mea bench system --actors 8` with short windows (GPU_CHECK_SYSTEM_SECONDS, default 110,
+#            0 skips it): raw pybullet stepping against the whole stack at 8 actors
 # `mea` is run as `python3 -m services.cli` (the project is not installed there).
 #
 # OUTDIR receives 8 files at most, no folders (the device tool returns 8): summary.txt (each step's
-# status and time, the update timings, the curve), steps.log (install, env, tests, benchmark logs),
-# bench.jsonl (the two benchmark results), run.log, run-resources.csv (GPU utilisation and memory,
-# host memory used, every 5 s), run-eval.jsonl, run-summary.json, run-curves.png. The run directory
-# itself stays in /tmp/gpu-check-run (checkpoints and weights are too many and too large to return).
+# status and time, the update timings, the curve, the system bench's tables), steps.log (install,
+# env, tests, benchmark logs), bench.jsonl (the learner benchmark results), run.log,
+# run-resources.csv (GPU utilisation and memory, host memory used, every 5 s), run-eval.jsonl,
+# run-summary.json, run-curves.png. The run directory itself stays in /tmp/gpu-check-run
+# (checkpoints and weights are too many and too large to return).
 #
 # Time: GPU_CHECK_SECONDS (default 450) for the whole check; the run gets what the steps before it
-# left, less 40 s for its stop: about 8 minutes in all. Give the device command a timeout_s of 600.
+# left, less 40 s for its stop and the system bench's share: about 8 minutes in all. Give the device
+# command a timeout_s of 600.
 #
 # pytest: the GPU image has it (and iniconfig, pluggy, packaging, pytest-timeout). Where it does not,
 # add its wheels to .whl before carrying it (the install step installs every wheel there):
@@ -144,19 +149,20 @@ fi
 if [ "$DRY" = 1 ]; then
   variants=(smoke:c4) cpu_variants=(smoke:c4) updates=(--updates 2 --episodes 8) cpu_updates=(--updates 1 --episodes 8)
 else
-  variants=(paper:c4 paper:d4 paper:none cpu-small:c4) cpu_variants=(paper:c4 cpu-small:c4)
-  updates=(--updates 50) cpu_updates=(--updates 3)
+  variants=(paper:c4 cpu-small:c4) updates=(--updates 50)
 fi
 : >"$OUT/bench.jsonl"
-bench=("$PY" -m services.cli bench learner --consumers 0 --gasv2-presets --json)  # one JSON line each
+bench=("$PY" -m services.cli bench learner --consumers 0 --gasv2-presets --checkpoint-episodes 0 --json)
 STDOUT_TO=$OUT/bench.jsonl step "bench-$([ "$DRY" = 1 ] && echo dev || echo "$DEVICE")" 150 "$LOG" "${bench[@]}" --device "$DEVICE" \
   --variants "${variants[@]}" "${updates[@]}"
 if [ "$DRY" != 1 ]; then  # the same paper update replayed as a CUDA graph (--cuda-graphs)
   STDOUT_TO=$OUT/bench.jsonl step bench-graphs 90 "$LOG" "${bench[@]}" --device "$DEVICE" --cuda-graphs \
     --variants paper:c4 cpu-small:c4 "${updates[@]}"
 fi
-STDOUT_TO=$OUT/bench.jsonl step bench-cpu 90 "$LOG" "${bench[@]}" --device cpu --variants "${cpu_variants[@]}" \
-  "${cpu_updates[@]}"
+if [ "$DRY" = 1 ]; then  # the plumbing of a CPU baseline; on the GPU machine its CPU figures are known
+  STDOUT_TO=$OUT/bench.jsonl step bench-cpu 90 "$LOG" "${bench[@]}" --device cpu --variants "${cpu_variants[@]}" \
+    "${cpu_updates[@]}"
+fi
 "$PY" - "$OUT/bench.jsonl" <<'PY' | tee -a "$SUMMARY"
 import json, sys
 for line in open(sys.argv[1]):
@@ -177,10 +183,35 @@ if [ "$DRY" = 1 ]; then
   run_args=(--learner-preset smoke --env-steps 300 --demos 2 --random-steps 50 --eval-every 150 --eval-episodes 1
             --final-eval-episodes 1 --actors 1)
 else
-  run_args=(--learner-preset paper --env-steps 3000 --demos 80 --random-steps 1000 --eval-every 1000
-            --eval-episodes 10 --final-eval-episodes 20 --actors 8)
+  run_args=(--learner-preset paper --env-steps 40000 --demos 2 --eval-every 1000 --eval-episodes 20
+            --final-eval-episodes 20 --actors 8)
 fi
-duration=$(( $(left) - 40 ))
+# the graphed update in the run only where its test passed and it timed faster than the eager one
+graphs=$("$PY" - "$OUT/bench.jsonl" "$LOG" <<'PY'
+import json, re, sys
+eager = graphed = None
+for line in open(sys.argv[1]):
+    try:
+        rows = json.loads(line)["results"]["gradient updates"]
+    except (ValueError, KeyError, TypeError):
+        rows = []
+    for row in rows:
+        if row["variant"].startswith("paper"):
+            if row.get("CUDA graphs"):
+                graphed = row["ms/update p50"]
+            else:
+                eager = eager or row["ms/update p50"]
+log = open(sys.argv[2]).read()
+ok = not re.search(r"^(FAILED|ERROR) .*graph", log, re.M)  # pytest -rs lists failures so
+print("yes" if ok and graphed is not None and eager is not None and graphed < eager else "no")
+PY
+)
+if [ "$graphs" = yes ]; then
+  run_args+=(--learner-args=--cuda-graphs)
+fi
+note "run          learner with CUDA graphs: $graphs"
+SYSTEM=${GPU_CHECK_SYSTEM_SECONDS:-110}
+duration=$(( $(left) - 40 - SYSTEM ))
 if [ "$duration" -lt 60 ]; then
   note "run          SKIPPED: ${duration} s left of the check's ${TOTAL} s"
 else
@@ -222,5 +253,16 @@ if summary:
                   f"critic loss {c.get('critic_loss', float('nan')):.4g}, replay {c.get('replay_transitions', 0):.0f}")
 PY
   tail -5 "$OUT/run-resources.csv" | tee -a "$SUMMARY"
+fi
+
+# --- system ----------------------------------------------------------------------------------------
+if [ "$SYSTEM" -gt 0 ] && [ "$(left)" -gt 60 ]; then
+  window=$(( (SYSTEM - 50) / 3 > 10 ? (SYSTEM - 50) / 3 : 10 ))  # raw, warm-up and stack windows
+  STDOUT_TO=/tmp/gpu-check-system.txt step system "$SYSTEM" "$LOG" "$PY" -m services.cli bench system \
+    --actors "$([ "$DRY" = 1 ] && echo 1 || echo 8)" --seconds "$window" --warmup-seconds "$window" \
+    --run-dir /tmp/gpu-check-system
+  cat /tmp/gpu-check-system.txt >>"$SUMMARY" 2>/dev/null
+else
+  note "system       SKIPPED: $(left) s left of the check's ${TOTAL} s"
 fi
 note "gpu-check done in ${SECONDS} s"
