@@ -286,9 +286,10 @@ def test_a_checkpoint_resumes_on_another_device_with_the_same_actor(tmp_path, tr
     assert resumed.agent.log_alpha.device.type == resumed_on
     opt_state = next(iter(resumed.agent.critic_opt.state.values()))
     assert opt_state["exp_avg"].device.type == resumed_on  # the optimiser's moments moved with it
-    # fused Adam on CUDA, the default one on the CPU, whichever wrote the optimiser's state
-    assert all(bool(o.defaults.get("fused")) == (resumed_on == "cuda")
-               for o in (resumed.agent.actor_opt, resumed.agent.critic_opt, resumed.agent.alpha_opt))  # fmt: skip
+    # torch's default Adam on either device, whichever wrote the optimiser's state (the fused one
+    # refuses the transposed gradient einsum gives the mean head's irrep)
+    assert not any(o.defaults.get("fused")
+                   for o in (resumed.agent.actor_opt, resumed.agent.critic_opt, resumed.agent.alpha_opt))  # fmt: skip
     assert resumed.step() is not None and resumed.updates == 4  # and it trains on
 
 

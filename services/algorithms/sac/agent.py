@@ -117,14 +117,13 @@ class RecurrentSAC:
         shared = {id(p) for p in critic.parameters()}
         self._actor_params = [p for p in actor.parameters() if p.requires_grad and id(p) not in shared]
         self._critic_params = [p for p in critic.parameters() if p.requires_grad]
-        # on CUDA torch's fused Adam (one kernel per step instead of several per parameter); the
-        # same update rule, and the CPU keeps its default implementation
-        fused = {"fused": True} if self.device.type == "cuda" else {}
-        if cuda_graphs:
-            fused["capturable"] = True  # Adam's step count on the device, read inside the graph
-        self.actor_opt = torch.optim.Adam(self._actor_params, lr=settings.lr, **fused)
-        self.critic_opt = torch.optim.Adam(self._critic_params, lr=settings.lr, **fused)
-        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=settings.alpha_lr, **fused)
+        # torch's default Adam on every device (multi-tensor on CUDA). Not the fused kernel: it
+        # refuses a gradient whose strides differ from its parameter's (einsum hands the mean
+        # head's irrep a transposed one), which the H200 check of 2026-11-29 hit on every update.
+        opt = {"capturable": True} if cuda_graphs else {}  # Adam's step count read inside the graph
+        self.actor_opt = torch.optim.Adam(self._actor_params, lr=settings.lr, **opt)
+        self.critic_opt = torch.optim.Adam(self._critic_params, lr=settings.lr, **opt)
+        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=settings.alpha_lr, **opt)
         self.updates = 0
         self._graphed = (
             GraphedUpdate(
