@@ -18,6 +18,7 @@ from typing import Any
 
 TAG_PREFIXES = (
     ("batch_", "charts/"),
+    ("episode_staleness", "charts/"),
     ("updates_per_second", "perf/"),
     ("grad_norm", "diagnostics/"),
     ("bc_accept", "diagnostics/"),

@@ -10,7 +10,7 @@ import logging
 import math
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -40,6 +40,8 @@ from services.learner.metrics import UpdateRate, learner_metrics, record_gate, r
 log = logging.getLogger(__name__)
 ACK_REFRESH_SECONDS = 5.0
 """An unchanged EpisodeAck is published again this often (for actors that joined since)."""
+ANNOUNCED_KEPT = 4096
+"""Weights versions whose announcement the learner remembers, to tell an episode's staleness."""
 
 
 class Learner:
@@ -58,6 +60,10 @@ class Learner:
         self.run_id = cfg.run_id or default_run_id(cfg.run_dir)
         self.version = -1
         self.published_at = -1  # updates when the newest version was announced
+        # version -> updates at its announcement, for the recent versions: how stale the weights that
+        # acted an episode are when it arrives (versions from before a restart are not known)
+        self._announced: OrderedDict[int, int] = OrderedDict()
+        self.staleness: int | None = None  # of the newest learned episode, in updates
         self.last: dict[str, float] = {}
         self.counts = {"episodes_in": 0, "rejected": 0}
         self.taken: deque[str] = deque(maxlen=ACK_WINDOW)  # raw episode ids, for EpisodeAck
@@ -84,6 +90,7 @@ class Learner:
         if ep.augmentation is None:  # taken, whatever happens below: the actor may let it go
             self.taken.append(ep.episode_id)
             self._acks_due = True
+        acted_at = self._announced.get(ep.policy_version) if ep.augmentation is None else None
         try:
             self.trainer.insert(ep)
         except ValueError as exc:
@@ -93,6 +100,9 @@ class Learner:
             return
         self.counts["episodes_in"] += 1
         self.mx["episodes_in"].labels(kind).inc()
+        if acted_at is not None:  # updates made since the weights that acted it were announced
+            self.staleness = self.trainer.updates - acted_at
+            self.mx["episode_staleness"].observe(self.staleness)
 
     def _ingest_loop(self) -> None:
         next_gate = 0.0
@@ -157,7 +167,10 @@ class Learner:
         rate = self._rate.tick(time.monotonic())
         record_update(self.mx, info, time.perf_counter() - t0, rate)
         if self.scalars is not None:
-            self.scalars.add(info | {"updates_per_second": rate}, self.trainer.env_steps)
+            extra = {"updates_per_second": rate}
+            if self.staleness is not None:
+                extra["episode_staleness_updates"] = self.staleness
+            self.scalars.add(info | extra, self.trainer.env_steps)
         if not math.isfinite(info.get("critic_loss", 0.0)):
             log.error("non-finite critic loss", extra={"updates": self.trainer.updates})
         if self.trainer.publish_due():
@@ -169,6 +182,9 @@ class Learner:
         self.version += 1
         checkpoint.record_published(self.ckpt_dir, self.run_id, self.version)
         self.published_at = self.trainer.updates
+        self._announced[self.version] = self.published_at
+        while len(self._announced) > ANNOUNCED_KEPT:
+            self._announced.popitem(last=False)
         tensors = self.trainer.policy_tensors()
         blob = WeightsBlob.create(
             self.version, self.cfg.algorithm.name, self.run_id, tensors, self.spec.to_json()
