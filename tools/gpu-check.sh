@@ -5,6 +5,9 @@
 #
 #   bash tools/gpu-check.sh "$OUT"
 #
+# (KEEP_DATA=__init__.py,kuka_iiwa,franka_panda,plane,tray,table,cube,checker for gpu-wheels.sh keeps the
+# plane's texture too, which pybullet otherwise warns about at every load; no image uses it.)
+#
 # Steps, each under its own `timeout`; each runs whatever became of the one before (its status and
 # time go to summary.txt), so one run yields as much as it can:
 #   install  the carried wheels into /tmp/site; PYTHONPATH=/tmp/site:$PWD
