@@ -293,6 +293,22 @@ def test_a_checkpoint_resumes_on_another_device_with_the_same_actor(tmp_path, tr
     assert resumed.step() is not None and resumed.updates == 4  # and it trains on
 
 
+def test_a_loaded_optimiser_state_keeps_this_learners_adam_not_its_writers():
+    trainer = filled_trainer("cpu")
+    assert trainer.step() is not None
+    state = trainer.agent.state_dict()
+    for name in ("actor_opt", "critic_opt", "alpha_opt"):  # as a fused, graphed CUDA learner wrote it
+        for group in state[name]["param_groups"]:
+            group.update(fused=True, capturable=True, foreach=False)
+    resumed = filled_trainer("cpu")
+    resumed.agent.load_state_dict(state)
+    for opt in (resumed.agent.actor_opt, resumed.agent.critic_opt, resumed.agent.alpha_opt):
+        for group in opt.param_groups:
+            assert (group["fused"], group["capturable"], group["foreach"]) == (None, False, None)
+        assert opt.state  # the moments came with it
+    assert resumed.step() is not None and resumed.agent.updates == 2
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_published_weights_are_numpy_on_the_cpu_and_act_like_the_trained_actor(device):
     trainer = filled_trainer(device)

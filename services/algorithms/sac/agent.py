@@ -293,16 +293,17 @@ class RecurrentSAC:
         self.critic_opt.load_state_dict(d["critic_opt"])
         self.alpha_opt.load_state_dict(d["alpha_opt"])
         self.updates = int(d["updates"])
-        self._keep_capturable()
+        self._keep_own_optimiser()
 
-    def _keep_capturable(self) -> None:
-        """A loaded optimiser state carries its writer's ``capturable``; this learner keeps its own (a
-        CUDA graph's Adam keeps its step count on the device, an eager one need not)."""
+    def _keep_own_optimiser(self) -> None:
+        """A loaded optimiser state carries its writer's implementation flags; this learner keeps its
+        own (a CUDA graph's Adam keeps its step count on the device, an eager one need not; a state
+        written by a fused Adam must not bring the fused kernel back)."""
         for opt in (self.actor_opt, self.critic_opt, self.alpha_opt):
-            capturable = bool(opt.defaults.get("capturable"))
             for group in opt.param_groups:
-                group["capturable"] = capturable
-            if capturable:
+                for flag in ("capturable", "fused", "foreach"):
+                    group[flag] = opt.defaults.get(flag)
+            if opt.defaults.get("capturable"):
                 for state in opt.state.values():
                     if "step" in state:
                         state["step"] = state["step"].to(self.device, torch.float32)
