@@ -84,6 +84,7 @@ def actor_config(
         random_steps=run.resolved_random_steps() if index == 0 and run.resume is None else 0,
         depth_image=variant(run.variant).depth_image,
         gripper_start=run.gripper_start,
+        expert=run.expert,
         jump_start=run.jump_start if "learner" in run.services or run.connect else 0.0,
         jump_start_demos=run.resolved_demos() if run.jump_start > 0 else 0,
         jump_start_seed_base=actor_seed_base(run.seed, 0) if run.jump_start > 0 else 0,

@@ -15,7 +15,7 @@ from typing import Literal
 import typeguard
 
 from proto.episode import DSA_TASKS
-from services.actor.config import MAX_ENVS
+from services.actor.config import EXPERTS, MAX_ENVS
 from services.common.bus.zenoh_derive import check_run_file
 from services.learner import init_actor
 from services.learner.config import check_device, learner_presets, preset_name
@@ -167,6 +167,9 @@ class RunConfig:
     jump_start: float = 0.0
     """Share of learned episodes that replay one of the run's demos up to a drawn step, then act (JSRL)."""
 
+    expert: str = "observable"
+    """Demos' expert: observable, or privileged (the first object by its hidden fixedness)."""
+
     def resolved_success_rotations(self) -> int:
         """``success_rotations``, else the learner preset's default: the CPU recipe clones its few
         successes, and BC of 2 Block Pull demos reached 0.23-0.33 with 64 rotated copies against
@@ -212,6 +215,7 @@ class RunConfig:
             )
         if self.variant not in VARIANTS:
             raise ValueError(f"variant must be one of {tuple(VARIANTS)}, not {self.variant!r}")
+        self._check_demos()
         self._check_jump_start()
         if self.mea_on not in MEA_ON:
             raise ValueError(f"mea_on must be one of {MEA_ON[1:]}, not {self.mea_on!r}")
@@ -226,10 +230,6 @@ class RunConfig:
             raise ValueError(
                 f"--learner-threads must be >= 0 (0: torch's default), not {self.learner_threads}"
             )
-        if (self.demos is not None and self.demos < 0) or (
-            self.random_steps is not None and self.random_steps < 0
-        ):
-            raise ValueError("demos and random_steps must be >= 0")
         if self.eval_videos < 0:
             raise ValueError("--eval-videos must be >= 0 (0: no evaluation videos)")
         if self.wandb_mode not in WANDB_MODES:
@@ -250,6 +250,14 @@ class RunConfig:
             raise ValueError(f"--actors must be >= 0 or auto, not {self.actors!r}")
         if not isinstance(self.envs_per_actor, int) or not 1 <= self.envs_per_actor <= MAX_ENVS:
             raise ValueError(f"--envs-per-actor must be in 1..{MAX_ENVS}, not {self.envs_per_actor!r}")
+
+    def _check_demos(self) -> None:
+        if (self.demos is not None and self.demos < 0) or (
+            self.random_steps is not None and self.random_steps < 0
+        ):
+            raise ValueError("demos and random_steps must be >= 0")
+        if self.expert not in EXPERTS:
+            raise ValueError(f"--expert must be one of {', '.join(EXPERTS)}, not {self.expert!r}")
 
     def _check_jump_start(self) -> None:
         if not 0.0 <= self.jump_start <= 1.0:

@@ -274,6 +274,15 @@ def test_a_run_that_connects_to_another_hosts_router_runs_learned_actors_and_bin
     assert cfg.service.zenoh.connect == (remote.listen,)  # services still join the run's own router
 
 
+def test_the_demos_expert_reaches_the_actor_that_records_them_and_a_bad_one_is_refused(tmp_path):
+    for expert in ("observable", "privileged"):
+        run = RunConfig(task="block_pull", expert=expert, metrics_port=0)
+        assert config_for(run, tmp_path, "actor", 0).expert == expert
+    assert RunConfig().expert == "observable"  # the demonstrations a policy can imitate, by default
+    with pytest.raises(ValueError, match=r"^--expert must be one of observable, privileged, not 'planner'$"):
+        RunConfig(expert="planner")
+
+
 def test_the_gripper_start_reaches_every_env_of_the_run_and_is_refused_where_it_means_nothing(tmp_path):
     for start in ("random", "fixed"):
         run = RunConfig(task="block_pull", gripper_start=start, metrics_port=0)
