@@ -18,7 +18,7 @@ from typing import Any
 
 TAG_PREFIXES = (
     ("batch_", "charts/"),
-    ("episode_staleness", "charts/"),
+    ("episode_lag", "charts/"),
     ("updates_per_second", "perf/"),
     ("grad_norm", "diagnostics/"),
     ("bc_accept", "diagnostics/"),

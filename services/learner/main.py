@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 ACK_REFRESH_SECONDS = 5.0
 """An unchanged EpisodeAck is published again this often (for actors that joined since)."""
 ANNOUNCED_KEPT = 4096
-"""Weights versions whose announcement the learner remembers, to tell an episode's staleness."""
+"""Weights versions whose announcement the learner remembers, to tell the lag of the episodes they act."""
 
 
 class Learner:
@@ -60,10 +60,11 @@ class Learner:
         self.run_id = cfg.run_id or default_run_id(cfg.run_dir)
         self.version = -1
         self.published_at = -1  # updates when the newest version was announced
-        # version -> updates at its announcement, for the recent versions: how stale the weights that
-        # acted an episode are when it arrives (versions from before a restart are not known)
-        self._announced: OrderedDict[int, int] = OrderedDict()
-        self.staleness: int | None = None  # of the newest learned episode, in updates
+        # version -> updates owed at its announcement (inserted env steps x samples per insert, less
+        # the updates made), for the recent versions: the data the weights that acted an episode had
+        # not yet learned from (versions from before a restart, or a limiter with no ratio: unknown)
+        self._announced: OrderedDict[int, float | None] = OrderedDict()
+        self.lag: float | None = None  # of the newest learned episode, in updates
         self.last: dict[str, float] = {}
         self.counts = {"episodes_in": 0, "rejected": 0}
         self.taken: deque[str] = deque(maxlen=ACK_WINDOW)  # raw episode ids, for EpisodeAck
@@ -90,7 +91,7 @@ class Learner:
         if ep.augmentation is None:  # taken, whatever happens below: the actor may let it go
             self.taken.append(ep.episode_id)
             self._acks_due = True
-        acted_at = self._announced.get(ep.policy_version) if ep.augmentation is None else None
+        lag = self._announced.get(ep.policy_version) if ep.augmentation is None else None
         try:
             self.trainer.insert(ep)
         except ValueError as exc:
@@ -100,9 +101,9 @@ class Learner:
             return
         self.counts["episodes_in"] += 1
         self.mx["episodes_in"].labels(kind).inc()
-        if acted_at is not None:  # updates made since the weights that acted it were announced
-            self.staleness = self.trainer.updates - acted_at
-            self.mx["episode_staleness"].observe(self.staleness)
+        if lag is not None:
+            self.lag = lag
+            self.mx["episode_lag"].observe(lag)
 
     def _ingest_loop(self) -> None:
         next_gate = 0.0
@@ -168,8 +169,8 @@ class Learner:
         record_update(self.mx, info, time.perf_counter() - t0, rate)
         if self.scalars is not None:
             extra = {"updates_per_second": rate}
-            if self.staleness is not None:
-                extra["episode_staleness_updates"] = self.staleness
+            if self.lag is not None:
+                extra["episode_lag_updates"] = self.lag
             self.scalars.add(info | extra, self.trainer.env_steps)
         if not math.isfinite(info.get("critic_loss", 0.0)):
             log.error("non-finite critic loss", extra={"updates": self.trainer.updates})
@@ -182,7 +183,7 @@ class Learner:
         self.version += 1
         checkpoint.record_published(self.ckpt_dir, self.run_id, self.version)
         self.published_at = self.trainer.updates
-        self._announced[self.version] = self.published_at
+        self._announced[self.version] = getattr(self.trainer.limiter, "diff", None)  # updates owed
         while len(self._announced) > ANNOUNCED_KEPT:
             self._announced.popitem(last=False)
         tensors = self.trainer.policy_tensors()

@@ -58,10 +58,11 @@ def learner_metrics(m: ServiceMetrics) -> dict[str, Any]:
             "mea_learner_limiter_inserts_allowed", "Env steps producers may still add before waiting."
         ),
         "version": m.gauge("mea_learner_weights_version", "Latest weights version published."),
-        "episode_staleness": m.histogram(
-            "mea_learner_episode_staleness_updates",
-            "Updates made between the announcement of the weights that acted a learned episode and its arrival.",
-            (0, 10, 25, 50, 100, 200, 400, 800, 1600, 3200),
+        "episode_lag": m.histogram(
+            "mea_learner_episode_lag_updates",
+            "Updates the learner owed (inserted env steps x samples per insert, less updates made) when the "
+            "weights that acted a learned episode were announced: data they had not yet learned from.",
+            (0, 1, 10, 25, 50, 100, 150, 200, 300, 500, 1000),
         ),
         "publish_seconds": m.histogram(
             "mea_learner_weights_publish_seconds",

@@ -92,26 +92,24 @@ def test_the_learner_keeps_receiving_while_its_replay_is_held_and_inserts_everyt
         assert core.heartbeat_counters()["inbox_peak_bytes"] > 0
 
 
-def test_a_learned_episode_is_counted_stale_by_the_updates_since_its_weights_were_announced(tmp_path):
+def test_a_learned_episode_carries_the_updates_owed_when_the_weights_that_acted_it_were_announced(tmp_path):
     service = ServiceConfig(instance_id="learner-0", metrics_port=0, heartbeat_seconds=0.5)
-    cfg = tiny_learner_config(tmp_path, service)
+    cfg = tiny_learner_config(tmp_path, service)  # 1 update per env step
     with ServiceContext("learner", service, bus_factory=lambda _c: InProcBus(Hub())) as ctx:
         core = Learner(cfg, ctx, None)
-        for seed in range(4):  # demonstrations: enough steps for the limiter to allow updates
+        for seed in range(4):  # 4 demonstrations of 10 steps: 40 updates owed, none made
             core.ingest(learner_episode(seed, demo=True))
-        core.publish_weights()  # version 0, announced at 0 updates
-        while core.trainer.updates < 7:
+        core.publish_weights()  # version 0
+        while core.trainer.updates < 7:  # announcing a version every 2 updates on the way
             assert core.try_update()
-        v0_updates = core.trainer.updates  # try_update announced further versions on the way
-        acted = dataclasses.replace(learner_episode(10), policy_version=0)
-        core.ingest(acted)
-        assert core.staleness == v0_updates  # every update since version 0 was announced
-        newest = dataclasses.replace(learner_episode(11), policy_version=core.version)
-        core.ingest(newest)
-        assert core.staleness == core.trainer.updates - core.published_at
+        core.ingest(dataclasses.replace(learner_episode(10), policy_version=0))
+        assert core.lag == 40  # version 0 had learned from none of the 40 steps
+        core.ingest(dataclasses.replace(learner_episode(11), policy_version=core.version))
+        assert core.lag == 40 - core.published_at  # the newest had made published_at of them
         for unknown in (-1, core.version + 5):  # scripted, and a version this learner never announced
-            before = core.staleness
             core.ingest(dataclasses.replace(learner_episode(12 + unknown % 7), policy_version=unknown))
-            assert core.staleness == before
-        hist = ctx.metrics.registry.get_sample_value("mea_learner_episode_staleness_updates_count")
-        assert hist == 2
+            assert core.lag == 40 - core.published_at  # unchanged
+        assert ctx.metrics.registry.get_sample_value("mea_learner_episode_lag_updates_count") == 2
+        assert ctx.metrics.registry.get_sample_value("mea_learner_episode_lag_updates_sum") == (
+            40 + 40 - core.published_at
+        )

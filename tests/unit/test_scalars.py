@@ -23,7 +23,7 @@ def test_tags_follow_the_cleanrl_layout():
     assert tag("alpha") == "losses/alpha"
     assert tag("batch_demo_share") == "charts/batch_demo_share"
     assert tag("updates_per_second") == "perf/updates_per_second"
-    assert tag("episode_staleness_updates") == "charts/episode_staleness_updates"
+    assert tag("episode_lag_updates") == "charts/episode_lag_updates"
     assert tag("bc_grad_norm") == "diagnostics/bc_grad_norm"
     assert tag("q_rank_gap") == "diagnostics/q_rank_gap"
 
