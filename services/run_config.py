@@ -15,7 +15,7 @@ from typing import Literal
 import typeguard
 
 from proto.episode import DSA_TASKS
-from services.actor.config import EXPERTS, MAX_ENVS
+from services.actor.config import MAX_ENVS, check_expert
 from services.common.bus.zenoh_derive import check_run_file
 from services.learner import init_actor
 from services.learner.config import check_device, learner_presets, preset_name
@@ -256,8 +256,7 @@ class RunConfig:
             self.random_steps is not None and self.random_steps < 0
         ):
             raise ValueError("demos and random_steps must be >= 0")
-        if self.expert not in EXPERTS:
-            raise ValueError(f"--expert must be one of {', '.join(EXPERTS)}, not {self.expert!r}")
+        check_expert(self.expert)
 
     def _check_jump_start(self) -> None:
         if not 0.0 <= self.jump_start <= 1.0:

@@ -21,7 +21,7 @@ from mea_tools.bench.report import emit
 from proto.episode import Episode
 from proto.seeds import EVAL_SEED_BASE
 from proto.weights import WeightsBlob
-from services.actor.config import EXPERTS
+from services.actor.config import check_expert
 from services.actor.rollout import RolloutActor
 from services.algorithms.batch import to_batch
 from services.algorithms.imitation import Cloner, CloneSettings, held_loss
@@ -108,8 +108,8 @@ class ImitationBenchConfig:
             raise ValueError(f"--mea-copies must be >= 0 and needs --variant mea, not {self.mea_copies} "
                              f"with --variant {self.variant}")  # fmt: skip
 
-        if self.expert is not None and self.expert not in EXPERTS:
-            raise ValueError(f"--expert must be one of {', '.join(EXPERTS)}, not {self.expert!r}")
+        if self.expert is not None:
+            check_expert(self.expert)
         if self.out is not None and self.out.exists() and not self.out.is_dir():
             raise ValueError(f"--out: {str(self.out)!r} is a file, not a directory")
 

@@ -16,6 +16,12 @@ MAX_ENVS = 64
 """Envs one actor steps at most (each is a pybullet world in the actor's memory)."""
 
 
+def check_expert(expert: str, name: str = "--expert") -> None:
+    """Refuse an expert that is not one of ``EXPERTS``, naming the setting ``name`` in one line."""
+    if expert not in EXPERTS:
+        raise ValueError(f"{name} must be one of {', '.join(EXPERTS)}, not {expert!r}")
+
+
 @dataclasses.dataclass(frozen=True)
 class ActorConfig:
     """Simulate a task and publish whole episodes."""
@@ -91,8 +97,7 @@ class ActorConfig:
             raise ValueError("unacked_limit must be >= 1 and resend_seconds > 0")
         if self.policy not in POLICIES:
             raise ValueError(f"policy must be one of {POLICIES}, not {self.policy!r}")
-        if self.expert not in EXPERTS:
-            raise ValueError(f"expert must be one of {', '.join(EXPERTS)}, not {self.expert!r}")
+        check_expert(self.expert, "expert")
         if self.expert_style not in ("alternate", *EXPERT_STYLES):
             raise ValueError(f"expert_style must be alternate, probe or direct, not {self.expert_style!r}")
 

@@ -17,7 +17,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from services.actor.config import EXPERTS, ActorConfig
+from services.actor.config import ActorConfig, check_expert
 from services.actor.rollout import RolloutActor
 from services.common import config, logs
 from services.common.mcap_io import McapRecorder
@@ -54,8 +54,7 @@ class DemosConfig:
             raise ValueError(f"--task must be one of {', '.join(sorted(TASK_CLASSES))}, not {self.task!r}")
         if self.style not in ("alternate", *EXPERT_STYLES):
             raise ValueError(f"--style must be alternate, probe or direct, not {self.style!r}")
-        if self.expert not in EXPERTS:
-            raise ValueError(f"--expert must be one of {', '.join(EXPERTS)}, not {self.expert!r}")
+        check_expert(self.expert)
         if self.n < 1:
             raise ValueError(f"--n must be >= 1 (demonstrations to record), not {self.n}")
         if self.seed_base < 0:
