@@ -138,7 +138,7 @@ if "$PY" -m pytest --version >>"$LOG" 2>&1; then
   mapfile -t cuda_files < <(grep -rl --include='test_*.py' 'mark.cuda' tests | sort)
   tests=("${cuda_files[@]}")
   [ "$DRY" = 1 ] || tests+=(tests/unit/test_sac_losses.py tests/unit/test_trainer.py)  # 3.12, torch 2.11
-  step tests "$(( $(left) < 150 ? 60 : 150 ))" "$LOG" "$PY" -m pytest -q -rs -p no:cacheprovider "${tests[@]}"
+  step tests "$(( $(left) < 150 ? 60 : 150 ))" "$LOG" "$PY" -m pytest -q -rsfE -p no:cacheprovider "${tests[@]}"
   grep -E "^(SKIPPED|FAILED|ERROR)|[0-9]+ (passed|failed)" "$LOG" | tail -15 | tee -a "$SUMMARY"
   # where an update still waits for the GPU (the networks' own code: a lead for the next speed-up)
   step sync-sites 60 "$LOG" "$PY" -m pytest -q -s -p no:cacheprovider -k never_synchronise \
@@ -205,7 +205,7 @@ for line in open(sys.argv[1]):
             else:
                 eager = eager or row["ms/update p50"]
 log = open(sys.argv[2]).read()
-ok = not re.search(r"^(FAILED|ERROR) .*graph", log, re.M)  # pytest -rs lists failures so
+ok = not re.search(r"^(FAILED|ERROR) .*graph", log, re.M)  # the tests step lists them (-rsfE)
 print("yes" if ok and graphed is not None and eager is not None and graphed < eager else "no")
 PY
 )
