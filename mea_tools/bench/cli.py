@@ -40,6 +40,11 @@ BENCHES: dict[str, tuple[str, str, str]] = {
         "CompareBenchConfig",
         "arms of training runs from different benches side by side: success at budget, AUC, P(improvement)",
     ),
+    "reach": (
+        "mea_tools.bench.reach",
+        "ReachBenchConfig",
+        "the RL core against a known answer: recurrent SAC on a sparse-reward 2D reach, by state or pixels",
+    ),
     "imitation": (
         "mea_tools.bench.imitation",
         "ImitationBenchConfig",

@@ -1,0 +1,323 @@
+"""`mea bench reach`: the RL core against a known answer. This project's recurrent SAC (its update,
+its replay of whole episodes, its networks and its policy runtime) trained with the public Equi-RSAC
+recipe on a sparse-reward 2D reach (``reach_task``), by the state or by pixels, beside what a
+well-kept SAC does on the same task.
+
+Known answer (docs/results.md, "The RL core against a known answer"): Stable-Baselines3 2.9.2's SAC
+with the same γ, τ, learning rate, α₀, target entropy, batch of 32 and the same 15 demonstrations
+solves the reach from the state by 12K env steps on both seeds it ran (1.00 on the 20 goals from
+11.5-12K, 0 until 7K). Through the 11 x 11 image it stays at 0.00-0.15 to 16K.
+
+The loop is the public code's order: the demonstrations, then the random episodes, then one rollout
+of the current stochastic policy at a time; after each episode, one update per env step it added.
+Every ``eval_every`` env steps the deterministic policy runs on ``eval_goals`` fixed starts.
+
+Design notes: docs/benchmarks.md#mea-bench-reach."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mea_tools.bench import reach_task as rt
+from mea_tools.bench.report import emit
+from proto.actions import ACTION_DIM
+from proto.episode import Episode
+from services.algorithms.batch import to_batch
+from services.algorithms.networks import NetConfig
+from services.algorithms.replay import SequenceReplay
+from services.algorithms.sac.algorithm import SacConfig
+from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.policy import ActorRuntime
+
+GROUPS = ("none", "c4")
+EVAL_SEED_BASE = 1_000_000_000
+"""Seeds of the evaluation starts (the same for every run)."""
+KNOWN_STATE = {"known answer: SB3 SAC, state, s0": (0.00, 0.25, 0.70, 1.00), "known answer: SB3 SAC, state, s1": (0.00, 0.20, 0.20, 1.00)}  # fmt: skip
+"""Success at 6K / 8K / 10K / 12K env steps of the reference runs (docs/results.md)."""
+KNOWN_MILESTONES = (6000, 8000, 10000, 12000)
+
+
+@dataclass(frozen=True)
+class ReachBenchConfig:
+    """Recurrent SAC (the public recipe) on the sparse-reward reach, per seed, beside the known answer."""
+
+    observation: str = "state"
+    """What the policy sees: state (the 4 coordinates) or image (point and goal marked)."""
+    group: str = "none"
+    """Networks: none (plain layers) or c4 (Equi-RSAC's; image only)."""
+    env_steps: int = 12000
+    """Env steps per run, demonstrations and random episodes included (the public count)."""
+    seeds: tuple[int, ...] = (0, 1)
+    """Training seeds, one run each."""
+    demos: int = 15
+    """Straight-line demonstrations stored first."""
+    random_episodes: int = 20
+    """Uniform-random episodes stored after them."""
+    eval_every: int = 500
+    """Env steps between deterministic evaluations."""
+    eval_goals: int = 20
+    """Fixed starts per evaluation."""
+    image_size: int = 11
+    """N of the N x N image (odd; 0.2 per pixel at 11)."""
+    batch_size: int = 32
+    """Whole episodes per update."""
+    updates_per_step: float = 1.0
+    """Updates per env step."""
+    alpha_lr: float = 1e-3
+    """Temperature learning rate (the public 1e-3)."""
+    share_encoder: bool = False
+    """The actor reads the critic's encoder, detached (the public code: separate encoders)."""
+    threads: int = 1
+    """torch intra-op threads."""
+    out: Path | None = None
+    """Write DIR/reach-<observation>-<group>-s<seed>.jsonl (one line per evaluation) and DIR/reach.json."""
+    json: bool = False
+    """Print exactly one JSON object instead of tables."""
+
+    def __post_init__(self) -> None:
+        if self.observation not in rt.OBSERVATIONS:
+            raise ValueError(
+                f"--observation must be one of {', '.join(rt.OBSERVATIONS)}, not {self.observation!r}"
+            )
+        if self.group not in GROUPS:
+            raise ValueError(f"--group must be one of {', '.join(GROUPS)}, not {self.group!r}")
+        if self.group != "none" and self.observation == "state":
+            raise ValueError("--group c4 needs --observation image (the state's coordinates are not images)")
+        if self.observation == "image":
+            rt.observe(rt.draw_start(np.random.default_rng(0)), "image", self.image_size)  # its size check
+        if not self.seeds or min(self.seeds) < 0:
+            raise ValueError(f"--seeds must be one or more seeds >= 0, not {list(self.seeds)}")
+        for name in ("env_steps", "eval_every", "eval_goals", "batch_size", "threads"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, not {getattr(self, name)}")
+        if self.demos < 0 or self.random_episodes < 0 or self.demos + self.random_episodes < 1:
+            raise ValueError("--demos and --random-episodes must be >= 0, and store at least one episode")
+        if not 0 < self.updates_per_step <= 16 or self.alpha_lr <= 0:
+            raise ValueError("--updates-per-step must be in (0, 16] and --alpha-lr > 0")
+        if self.out is not None and self.out.exists() and not self.out.is_dir():
+            raise ValueError(f"--out: {str(self.out)!r} is a file, not a directory")
+
+
+# ------------------------------------------------------------------------------------------------
+# the learner's pieces, as the learner builds them
+# ------------------------------------------------------------------------------------------------
+
+
+def net_config(cfg: ReachBenchConfig) -> NetConfig:
+    """Small widths: for the state a 1 x 1 "image" of four channels, so the encoder is an MLP on the
+    coordinates; for the image two stride-2 convolutions."""
+    common = dict(image_embed=64, action_embed=16, q_action_embed=64, lstm_hidden=64, mlp_hidden=(64, 64))
+    if cfg.observation == "state":
+        return NetConfig(
+            group="none", image_size=1, in_channels=4, encoder=((16, 1, 1),), final_kernel=1, **common
+        )
+    return NetConfig(group=cfg.group, image_size=cfg.image_size, in_channels=2,
+                     encoder=((8, 3, 2), (16, 3, 2)), final_kernel=_final_kernel(cfg.image_size), **common)  # fmt: skip
+
+
+def _final_kernel(n: int) -> int:
+    for _ in range(2):
+        n = (n - 3) // 2 + 1
+    return n
+
+
+def sac_config(cfg: ReachBenchConfig) -> SacConfig:
+    """The public recipe: no BC, separate encoders, α from 0.1, γ 0.9 (``SacSettings``' defaults)."""
+    name = "rsac" if cfg.group == "none" else "equi_rsac"
+    return SacConfig(
+        name=name,
+        net=net_config(cfg),
+        sac=SacSettings(alpha_lr=cfg.alpha_lr, share_encoder=cfg.share_encoder),
+    )
+
+
+def episode(
+    states: list[rt.ReachState],
+    actions: list[np.ndarray],
+    reached: bool,
+    cfg: ReachBenchConfig,
+    kind: str,
+    serial: int,
+) -> Episode:
+    """The episode as an actor would publish it; the privileged arrays hold the point (gripper pose)."""
+    T = len(actions)
+    pose = np.zeros((T + 1, 4), np.float32)
+    pose[:, :2] = [s.point for s in states]
+    rewards = np.zeros(T, np.float32)
+    rewards[-1] = float(reached)
+    end = np.zeros(T, bool)
+    end[-1] = True
+    return Episode(
+        episode_id=f"reach-{serial}-0",
+        task="block_pull",  # the schema's task names; nothing here reads it
+        seed=serial,
+        actor_id="reach",
+        policy_version=-1 if kind != "learned" else 0,
+        policy_kind=kind,
+        is_demo=kind == "expert_direct",
+        created_at=1.0,
+        segments=["gripper"],
+        points=np.zeros((T + 1, 1, 1, 3), np.float32),
+        point_counts=np.zeros((T + 1, 1), np.int32),
+        jaw=np.zeros(T + 1, np.float32),
+        actions=np.stack(actions).astype(np.float32),
+        rewards=rewards,
+        terminated=end & reached,
+        truncated=end & (not reached),
+        gripper_pose=pose,
+        object_poses=np.zeros((T + 1, 0, 7), np.float32),
+        contacts=np.zeros((T + 1, 0), bool),
+        images=np.stack([rt.observe(s, cfg.observation, cfg.image_size) for s in states]),
+    )
+
+
+def rollout(
+    start: rt.ReachState, act, cfg: ReachBenchConfig
+) -> tuple[list[rt.ReachState], list[np.ndarray], bool]:
+    """One episode from ``start``; ``act(state) -> action``."""
+    states, actions, reached = [start], [], False
+    while len(actions) < rt.MAX_STEPS and not reached:
+        a = np.asarray(act(states[-1]), np.float32)
+        s, _, reached = rt.step(states[-1], a)
+        states.append(s)
+        actions.append(a)
+    return states, actions, reached
+
+
+def policy_act(runtime: ActorRuntime, cfg: ReachBenchConfig):
+    runtime.reset()
+
+    def act(s: rt.ReachState) -> np.ndarray:
+        a = runtime.act(rt.observe(s, cfg.observation, cfg.image_size))
+        runtime.executed(a)
+        return a
+
+    return act
+
+
+def evaluate(runtime: ActorRuntime, cfg: ReachBenchConfig) -> float:
+    """Deterministic success on the fixed starts."""
+    wins = 0
+    for i in range(cfg.eval_goals):
+        start = rt.draw_start(np.random.default_rng(EVAL_SEED_BASE + i))
+        wins += rollout(start, policy_act(runtime, cfg), cfg)[2]
+    return wins / cfg.eval_goals
+
+
+# ------------------------------------------------------------------------------------------------
+# one run
+# ------------------------------------------------------------------------------------------------
+
+
+def train(cfg: ReachBenchConfig, seed: int, log=None) -> dict[str, Any]:
+    """One run: its evaluations (env steps, success, α, entropy) and its speed."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    sac = sac_config(cfg)
+    agent = sac.build(seed, torch.device("cpu"))
+    replay = SequenceReplay(max(cfg.env_steps, 1000) * 2, image_size=sac.net.image_size, seq_len=rt.MAX_STEPS,
+                            constant_channels=(), channels=sac.net.in_channels, seed=seed)  # fmt: skip
+    explore = ActorRuntime.of(agent.actor, sac.spec(), deterministic=False)
+    explore.generator = torch.Generator().manual_seed(seed)
+    greedy = ActorRuntime.of(agent.actor, sac.spec(), deterministic=True)
+    curve: list[dict[str, float]] = []
+    stats: dict[str, float] = {}
+    env_steps, credit, serial, update_seconds = 0, 0.0, 0, 0.0
+    t0 = time.perf_counter()
+
+    def record() -> None:
+        row = {"env_steps": env_steps, "success": evaluate(greedy, cfg), "updates": agent.updates,
+               "alpha": stats.get("alpha", math.nan), "entropy": stats.get("entropy", math.nan)}  # fmt: skip
+        curve.append(row)
+        if log is not None:
+            log(row)
+
+    record()
+    while env_steps < cfg.env_steps:
+        start = rt.draw_start(rng)
+        if serial < cfg.demos:
+            kind, act = "expert_direct", rt.expert_action
+        elif serial < cfg.demos + cfg.random_episodes:
+            kind, act = "random", lambda _s: rng.uniform(-1.0, 1.0, ACTION_DIM)
+        else:
+            kind, act = "learned", policy_act(explore, cfg)
+        states, actions, reached = rollout(start, act, cfg)
+        replay.insert_episode(episode(states, actions, reached, cfg, kind, serial))
+        serial += 1
+        before = env_steps
+        env_steps += len(actions)
+        credit += len(actions) * cfg.updates_per_step
+        u0 = time.perf_counter()
+        while credit >= 1.0:
+            batch = to_batch(replay.sample(cfg.batch_size, rng, trim=True))
+            stats = agent.update(batch)
+            credit -= 1.0
+        update_seconds += time.perf_counter() - u0
+        if env_steps // cfg.eval_every > before // cfg.eval_every:
+            record()
+    wall = time.perf_counter() - t0
+    return {"seed": seed, "curve": curve, "env_steps": env_steps, "wall_seconds": wall,
+            "update_ms": 1000 * update_seconds / max(agent.updates, 1), "updates": agent.updates}  # fmt: skip
+
+
+def at(curve: list[dict[str, float]], steps: int) -> float | None:
+    """Success at the last evaluation at or before ``steps`` (None if the run stopped before)."""
+    rows = [r for r in curve if r["env_steps"] <= steps]
+    if not rows or curve[-1]["env_steps"] < steps - rt.MAX_STEPS:
+        return None
+    return rows[-1]["success"]
+
+
+def first_solved(curve: list[dict[str, float]], level: float = 0.9) -> int | None:
+    """Env steps of the first evaluation at or above ``level``."""
+    return next((int(r["env_steps"]) for r in curve if r["success"] >= level), None)
+
+
+def run(cfg: ReachBenchConfig) -> dict[str, Any]:
+    torch.set_num_threads(cfg.threads)
+    arm = f"{cfg.observation}-{cfg.group}" + ("-shared" if cfg.share_encoder else "")
+    if cfg.out is not None:
+        cfg.out.mkdir(parents=True, exist_ok=True)
+    runs = []
+    for seed in cfg.seeds:
+        path = None if cfg.out is None else cfg.out / f"reach-{arm}-s{seed}.jsonl"
+        if path is not None:
+            path.write_text("")
+
+        def log(row: dict[str, float], seed: int = seed, path: Path | None = path) -> None:
+            print(f"[reach {arm} s{seed}] {json.dumps(row)}", file=sys.stderr, flush=True)
+            if path is not None:
+                with path.open("a") as f:
+                    f.write(json.dumps(row) + "\n")
+
+        runs.append(train(cfg, seed, log))
+    rows = [
+        {"run": f"this learner, {arm}, s{r['seed']}",
+         **{f"{m // 1000}K": at(r["curve"], m) for m in KNOWN_MILESTONES},
+         "first >= 0.9": first_solved(r["curve"]), "update ms": r["update_ms"], "wall s": r["wall_seconds"]}
+        for r in runs
+    ]  # fmt: skip
+    known = [
+        {"run": name, **{f"{m // 1000}K": v for m, v in zip(KNOWN_MILESTONES, vals, strict=True)},
+         "first >= 0.9": None, "update ms": None, "wall s": None}
+        for name, vals in KNOWN_STATE.items()
+    ]  # fmt: skip
+    result = emit(
+        "reach",
+        {"success on 20 fixed goals, beside the known answer (state)": rows + known},
+        {},
+        cfg.json,
+        meta={"config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}},
+    )
+    if cfg.out is not None:
+        (cfg.out / "reach.json").write_text(json.dumps({"runs": runs, **result}, default=float))
+    return result

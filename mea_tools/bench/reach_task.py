@@ -1,0 +1,92 @@
+"""A sparse-reward 2D reach whose right answer is known: the task `mea bench reach` trains recurrent
+SAC on, with nothing of Block Pull's simulator, observation or demonstrations in the way.
+
+A point in [-1, 1]^2 moves by ``STEP`` (dx, dy) per step (the action's other three entries do nothing,
+as the jaw and dθ mostly do in Block Pull). The goal is drawn at least ``MIN_START_DISTANCE`` away;
+reward 1 and the end of the episode within ``RADIUS`` of it, else 0; ``MAX_STEPS`` steps. The policy
+sees either the state (the four coordinates as a 1 x 1 image of four channels) or an N x N image with
+the point and the goal marked (channel 0 and 1; rows +x, columns +y), so that a quarter turn of the
+world turns the image exactly as ``groups.transform_images`` does and the task is C4-equivariant.
+
+Pure numpy: no simulator, no services."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from proto.actions import ACTION_DIM
+
+STEP = 0.2
+"""Distance moved per unit of dx and dy."""
+RADIUS = 0.2
+"""Success radius around the goal."""
+MIN_START_DISTANCE = 1.0
+"""The goal is drawn at least this far from the start."""
+MAX_STEPS = 50
+"""Steps before the time limit (Block Pull's)."""
+OBSERVATIONS = ("state", "image")
+CODE_MAX = 255
+
+
+@dataclass(frozen=True)
+class ReachState:
+    point: np.ndarray
+    """(2,) float64 position."""
+    goal: np.ndarray
+    """(2,) float64 goal."""
+
+
+def draw_start(rng: np.random.Generator) -> ReachState:
+    """A start and a goal in [-1, 1]^2 at least ``MIN_START_DISTANCE`` apart (rejection sampling)."""
+    while True:
+        p, g = rng.uniform(-1.0, 1.0, 2), rng.uniform(-1.0, 1.0, 2)
+        if np.linalg.norm(p - g) >= MIN_START_DISTANCE:
+            return ReachState(p, g)
+
+
+def step(s: ReachState, action: np.ndarray) -> tuple[ReachState, float, bool]:
+    """(next state, reward, reached). (dx, dy) = action[1:3] (``proto.actions``' layout), clipped to
+    [-1, 1]; the point stays in the box."""
+    d = np.clip(np.asarray(action, np.float64)[1:3], -1.0, 1.0)
+    p = np.clip(s.point + STEP * d, -1.0, 1.0)
+    reached = bool(np.linalg.norm(p - s.goal) < RADIUS)
+    return ReachState(p, s.goal), float(reached), reached
+
+
+def expert_action(s: ReachState) -> np.ndarray:
+    """A straight line to the goal: (dx, dy) along it, each within [-1, 1]; the rest zero."""
+    a = np.zeros(ACTION_DIM, np.float32)
+    d = (s.goal - s.point) / STEP
+    a[1:3] = d / max(1.0, float(np.abs(d).max()))
+    return a
+
+
+def _code(v: np.ndarray) -> np.ndarray:
+    return np.rint((np.asarray(v) + 1.0) * 0.5 * CODE_MAX).astype(np.uint8)
+
+
+def pixel(v: np.ndarray, size: int) -> tuple[int, int]:
+    """(row, column) of a position: rows follow +x, columns +y; the centre pixel is the origin."""
+    i = np.rint((np.clip(v, -1.0, 1.0) + 1.0) * 0.5 * (size - 1)).astype(int)
+    return int(i[0]), int(i[1])
+
+
+def observe(s: ReachState, observation: str, size: int) -> np.ndarray:
+    """uint8 codes (C, H, W): ``state`` (4, 1, 1) the coordinates in [-1, 1] as 0..255; ``image``
+    (2, size, size) with the point's pixel in channel 0 and the goal's in channel 1."""
+    if observation == "state":
+        return _code(np.concatenate([s.point, s.goal])).reshape(4, 1, 1)
+    if observation != "image":
+        raise ValueError(f"observation must be one of {OBSERVATIONS}, not {observation!r}")
+    if size < 3 or size % 2 == 0:
+        raise ValueError(f"the image size must be odd and >= 3 (a centre pixel at the origin), not {size}")
+    img = np.zeros((2, size, size), np.uint8)
+    img[(0, *pixel(s.point, size))] = CODE_MAX
+    img[(1, *pixel(s.goal, size))] = CODE_MAX
+    return img
+
+
+def channels(observation: str) -> int:
+    return 4 if observation == "state" else 2

@@ -1,0 +1,116 @@
+"""`mea bench reach`: the known-answer task is equivariant, its expert solves it, and the bench's loop
+stores what it acts on and learns through the learner's own pieces."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mea_tools.bench import reach as rb
+from mea_tools.bench import reach_task as rt
+from services.algorithms.groups import get_group, matrix, transform_actions, transform_images
+from services.algorithms.replay import SequenceReplay
+
+
+def _turned(s: rt.ReachState, g) -> rt.ReachState:
+    R = np.array(matrix(g), float)
+    return rt.ReachState(R @ s.point, R @ s.goal)
+
+
+@pytest.mark.parametrize("g", get_group("d4").elements)
+def test_turning_the_world_turns_the_image_and_the_step(g):
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        s = rt.draw_start(rng)
+        img = torch.from_numpy(rt.observe(s, "image", 11))
+        assert torch.equal(torch.from_numpy(rt.observe(_turned(s, g), "image", 11)), transform_images(img, g))
+        a = rng.uniform(-1.5, 1.5, 5).astype(np.float32)  # beyond the box too: clipping commutes
+        ga = transform_actions(torch.from_numpy(a), g).numpy()
+        nxt, r, done = rt.step(s, a)
+        g_nxt, g_r, g_done = rt.step(_turned(s, g), ga)
+        np.testing.assert_allclose(g_nxt.point, _turned(nxt, g).point, atol=1e-6)
+        assert (g_r, g_done) == (r, done)
+
+
+def test_the_expert_reaches_every_goal_and_random_actions_rarely_do():
+    rng = np.random.default_rng(0)
+    wins = [rb.rollout(rt.draw_start(rng), rt.expert_action, rb.ReachBenchConfig())[2] for _ in range(200)]
+    assert all(wins)
+    cfg = rb.ReachBenchConfig()
+    random = [rb.rollout(rt.draw_start(rng), lambda _s: rng.uniform(-1, 1, 5), cfg)[2] for _ in range(200)]
+    assert sum(random) < 100
+
+
+def test_the_state_observation_codes_the_coordinates():
+    s = rt.ReachState(np.array([-1.0, 1.0]), np.array([0.0, 0.5]))
+    codes = rt.observe(s, "state", 11)
+    assert codes.shape == (4, 1, 1) and codes.dtype == np.uint8
+    np.testing.assert_allclose(codes.ravel() / 255.0 * 2 - 1, [-1.0, 1.0, 0.0, 0.5], atol=1 / 255)
+
+
+@pytest.mark.parametrize("observation", ["state", "image"])
+def test_episodes_fit_the_learners_replay_as_they_were_acted(observation):
+    cfg = rb.ReachBenchConfig(observation=observation)
+    net = rb.net_config(cfg)
+    states, actions, reached = rb.rollout(rt.draw_start(np.random.default_rng(1)), rt.expert_action, cfg)
+    ep = rb.episode(states, actions, reached, cfg, "expert_direct", 0)
+    replay = SequenceReplay(1000, image_size=net.image_size, seq_len=rt.MAX_STEPS, constant_channels=(),
+                            channels=net.in_channels, seed=0)  # fmt: skip
+    assert replay.insert_episode(ep) == len(actions)
+    batch = replay.gather(replay.slots())
+    np.testing.assert_array_equal(batch.actions[0, : len(actions)], np.stack(actions))
+    np.testing.assert_array_equal(batch.images_uint8()[0, : len(states)], ep.images)
+    assert reached and batch.rewards[0, len(actions) - 1] == 1.0 and batch.terminated[0, len(actions) - 1]
+
+
+def test_a_short_run_updates_once_per_env_step_and_evaluates_on_schedule():
+    cfg = rb.ReachBenchConfig(
+        env_steps=150, demos=3, random_episodes=2, eval_every=100, eval_goals=2, batch_size=4
+    )
+    out = rb.train(cfg, seed=0)
+    steps = [r["env_steps"] for r in out["curve"]]
+    assert steps[0] == 0 and len(steps) >= 2 and steps[-1] >= 100
+    assert out["env_steps"] >= 150 and out["updates"] == out["env_steps"]  # one update per env step added
+    assert np.isfinite(out["curve"][-1]["alpha"]) and out["curve"][-1]["alpha"] < 0.1  # α moved
+
+
+def test_a_learner_that_imitates_the_expert_solves_the_state_task():
+    """The greedy policy runtime on the bench's evaluation reads what the actor learned: a state actor
+    cloned from 60 expert episodes (a few hundred steps of its own BC) solves most fixed goals, an
+    untrained one almost none."""
+    torch.manual_seed(0)
+    cfg = rb.ReachBenchConfig(eval_goals=10)
+    sac = rb.sac_config(cfg)
+    agent = sac.build(0, torch.device("cpu"))
+    greedy = rb.ActorRuntime.of(agent.actor, sac.spec(), deterministic=True)
+    before = rb.evaluate(greedy, cfg)
+    rng = np.random.default_rng(0)
+    eps = [rb.rollout(rt.draw_start(rng), rt.expert_action, cfg) for _ in range(60)]
+    opt = torch.optim.Adam(agent.actor.parameters(), lr=3e-3)
+    for _ in range(300):
+        loss = 0.0
+        for states, actions, _ in eps[::6]:
+            img = (
+                torch.from_numpy(np.stack([rt.observe(s, "state", 1) for s in states[:-1]]))[None].float()
+                / 255
+            )
+            prev = torch.from_numpy(np.concatenate([np.zeros((1, 5), np.float32), np.stack(actions)[:-1]]))[
+                None
+            ]
+            mean, _, _ = agent.actor(img, prev)
+            loss = loss + ((torch.tanh(mean) - torch.from_numpy(np.stack(actions))[None]) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    after = rb.evaluate(greedy, cfg)
+    assert before <= 0.2 and after >= 0.8, (before, after)
+
+
+def test_bad_settings_are_refused_in_one_line():
+    with pytest.raises(ValueError, match="--group c4 needs --observation image"):
+        rb.ReachBenchConfig(group="c4")
+    with pytest.raises(ValueError, match="odd"):
+        rb.ReachBenchConfig(observation="image", image_size=12)
+    with pytest.raises(ValueError, match="--observation"):
+        rb.ReachBenchConfig(observation="pixels")
