@@ -35,15 +35,18 @@ from services.algorithms.batch import to_batch
 from services.algorithms.networks import NetConfig
 from services.algorithms.replay import SequenceReplay
 from services.algorithms.sac.algorithm import SacConfig
-from services.algorithms.sac.config import SacSettings
+from services.algorithms.sac.config import ALPHA_LOSSES, SacSettings
 from services.algorithms.sac.policy import ActorRuntime
 
 GROUPS = ("none", "c4")
 EVAL_SEED_BASE = 1_000_000_000
 """Seeds of the evaluation starts (the same for every run)."""
-KNOWN_STATE = {"known answer: SB3 SAC, state, s0": (0.00, 0.25, 0.70, 1.00), "known answer: SB3 SAC, state, s1": (0.00, 0.20, 0.20, 1.00)}  # fmt: skip
-"""Success at 6K / 8K / 10K / 12K env steps of the reference runs (docs/results.md)."""
-KNOWN_MILESTONES = (6000, 8000, 10000, 12000)
+KNOWN_STATE = {
+    "known answer: SB3 SAC, state, s0": (0.00, 0.00, 0.00, 0.25, 0.70, 1.00),
+    "known answer: SB3 SAC, state, s1": (0.00, 0.00, 0.00, 0.20, 0.20, 1.00),
+}
+"""Success at ``KNOWN_MILESTONES`` env steps of the reference runs (docs/results.md)."""
+KNOWN_MILESTONES = (2000, 4000, 6000, 8000, 10000, 12000)
 
 
 @dataclass(frozen=True)
@@ -51,7 +54,8 @@ class ReachBenchConfig:
     """Recurrent SAC (the public recipe) on the sparse-reward reach, per seed, beside the known answer."""
 
     observation: str = "state"
-    """What the policy sees: state (the 4 coordinates) or image (point and goal marked)."""
+    """What the policy sees: state (the 4 coordinates), image (point and goal marked) or centred (the
+    goal's offset from the point, as a gripper-centred image)."""
     group: str = "none"
     """Networks: none (plain layers) or c4 (Equi-RSAC's; image only)."""
     env_steps: int = 12000
@@ -74,6 +78,8 @@ class ReachBenchConfig:
     """Updates per env step."""
     alpha_lr: float = 1e-3
     """Temperature learning rate (the public 1e-3)."""
+    alpha_loss: str = "alpha"
+    """Temperature loss (``SacSettings.alpha_loss``): alpha (the public code) or log_alpha (SB3)."""
     share_encoder: bool = False
     """The actor reads the critic's encoder, detached (the public code: separate encoders)."""
     threads: int = 1
@@ -91,9 +97,13 @@ class ReachBenchConfig:
         if self.group not in GROUPS:
             raise ValueError(f"--group must be one of {', '.join(GROUPS)}, not {self.group!r}")
         if self.group != "none" and self.observation == "state":
-            raise ValueError("--group c4 needs --observation image (the state's coordinates are not images)")
-        if self.observation == "image":
-            rt.observe(rt.draw_start(np.random.default_rng(0)), "image", self.image_size)  # its size check
+            raise ValueError(
+                "--group c4 needs --observation image or centred (the state's coordinates are not images)"
+            )
+        if self.observation != "state":
+            rt.observe(
+                rt.draw_start(np.random.default_rng(0)), self.observation, self.image_size
+            )  # size check
         if not self.seeds or min(self.seeds) < 0:
             raise ValueError(f"--seeds must be one or more seeds >= 0, not {list(self.seeds)}")
         for name in ("env_steps", "eval_every", "eval_goals", "batch_size", "threads"):
@@ -101,6 +111,10 @@ class ReachBenchConfig:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, not {getattr(self, name)}")
         if self.demos < 0 or self.random_episodes < 0 or self.demos + self.random_episodes < 1:
             raise ValueError("--demos and --random-episodes must be >= 0, and store at least one episode")
+        if self.alpha_loss not in ALPHA_LOSSES:
+            raise ValueError(
+                f"--alpha-loss must be one of {', '.join(ALPHA_LOSSES)}, not {self.alpha_loss!r}"
+            )
         if not 0 < self.updates_per_step <= 16 or self.alpha_lr <= 0:
             raise ValueError("--updates-per-step must be in (0, 16] and --alpha-lr > 0")
         if self.out is not None and self.out.exists() and not self.out.is_dir():
@@ -120,13 +134,16 @@ def net_config(cfg: ReachBenchConfig) -> NetConfig:
         return NetConfig(
             group="none", image_size=1, in_channels=4, encoder=((16, 1, 1),), final_kernel=1, **common
         )
-    return NetConfig(group=cfg.group, image_size=cfg.image_size, in_channels=2,
-                     encoder=((8, 3, 2), (16, 3, 2)), final_kernel=_final_kernel(cfg.image_size), **common)  # fmt: skip
+    n = rt.image_side(cfg.observation, cfg.image_size)
+    first = 3 if (n - 3) // 2 % 2 == 0 else 5  # a grid symmetric under quarter turns (NetConfig's check)
+    encoder = ((8, first, 2), (16, 3, 2))
+    return NetConfig(group=cfg.group, image_size=n, in_channels=2, encoder=encoder,
+                     final_kernel=_final_kernel(n, encoder), **common)  # fmt: skip
 
 
-def _final_kernel(n: int) -> int:
-    for _ in range(2):
-        n = (n - 3) // 2 + 1
+def _final_kernel(n: int, encoder: tuple[tuple[int, int, int], ...]) -> int:
+    for _, k, stride in encoder:
+        n = (n - k) // stride + 1
     return n
 
 
@@ -136,7 +153,7 @@ def sac_config(cfg: ReachBenchConfig) -> SacConfig:
     return SacConfig(
         name=name,
         net=net_config(cfg),
-        sac=SacSettings(alpha_lr=cfg.alpha_lr, share_encoder=cfg.share_encoder),
+        sac=SacSettings(alpha_lr=cfg.alpha_lr, alpha_loss=cfg.alpha_loss, share_encoder=cfg.share_encoder),
     )
 
 
@@ -282,9 +299,19 @@ def first_solved(curve: list[dict[str, float]], level: float = 0.9) -> int | Non
     return next((int(r["env_steps"]) for r in curve if r["success"] >= level), None)
 
 
+def arm_name(cfg: ReachBenchConfig) -> str:
+    """observation-group, then what differs from the public recipe."""
+    parts = [cfg.observation, cfg.group]
+    if cfg.share_encoder:
+        parts.append("shared")
+    if (cfg.alpha_loss, cfg.alpha_lr) != ("alpha", 1e-3):
+        parts.append(f"{cfg.alpha_loss}{cfg.alpha_lr:g}")
+    return "-".join(parts)
+
+
 def run(cfg: ReachBenchConfig) -> dict[str, Any]:
     torch.set_num_threads(cfg.threads)
-    arm = f"{cfg.observation}-{cfg.group}" + ("-shared" if cfg.share_encoder else "")
+    arm = arm_name(cfg)
     if cfg.out is not None:
         cfg.out.mkdir(parents=True, exist_ok=True)
     runs = []

@@ -4,9 +4,11 @@ SAC on, with nothing of Block Pull's simulator, observation or demonstrations in
 A point in [-1, 1]^2 moves by ``STEP`` (dx, dy) per step (the action's other three entries do nothing,
 as the jaw and dθ mostly do in Block Pull). The goal is drawn at least ``MIN_START_DISTANCE`` away;
 reward 1 and the end of the episode within ``RADIUS`` of it, else 0; ``MAX_STEPS`` steps. The policy
-sees either the state (the four coordinates as a 1 x 1 image of four channels) or an N x N image with
-the point and the goal marked (channel 0 and 1; rows +x, columns +y), so that a quarter turn of the
-world turns the image exactly as ``groups.transform_images`` does and the task is C4-equivariant.
+sees the state (the four coordinates as a 1 x 1 image of four channels), an N x N image of the world
+with the point and the goal marked (channel 0 and 1; rows +x, columns +y), or a ``centred`` image of
+2N - 1 pixels with the point at its centre and the goal at its offset from it, as a gripper-centred
+observation shows the blocks. A quarter turn of the world turns either image exactly as
+``groups.transform_images`` does, so the task is C4-equivariant.
 
 Pure numpy: no simulator, no services."""
 
@@ -26,7 +28,7 @@ MIN_START_DISTANCE = 1.0
 """The goal is drawn at least this far from the start."""
 MAX_STEPS = 50
 """Steps before the time limit (Block Pull's)."""
-OBSERVATIONS = ("state", "image")
+OBSERVATIONS = ("state", "image", "centred")
 CODE_MAX = 255
 
 
@@ -73,18 +75,29 @@ def pixel(v: np.ndarray, size: int) -> tuple[int, int]:
     return int(i[0]), int(i[1])
 
 
+def image_side(observation: str, size: int) -> int:
+    """H = W of an observation's image for the world image's ``size``."""
+    return 1 if observation == "state" else 2 * size - 1 if observation == "centred" else size
+
+
 def observe(s: ReachState, observation: str, size: int) -> np.ndarray:
     """uint8 codes (C, H, W): ``state`` (4, 1, 1) the coordinates in [-1, 1] as 0..255; ``image``
-    (2, size, size) with the point's pixel in channel 0 and the goal's in channel 1."""
+    (2, size, size) with the point's pixel in channel 0 and the goal's in channel 1; ``centred``
+    (2, 2 size - 1, 2 size - 1), the same at the same scale, shifted to put the point at the centre."""
     if observation == "state":
         return _code(np.concatenate([s.point, s.goal])).reshape(4, 1, 1)
-    if observation != "image":
+    if observation not in OBSERVATIONS:
         raise ValueError(f"observation must be one of {OBSERVATIONS}, not {observation!r}")
     if size < 3 or size % 2 == 0:
         raise ValueError(f"the image size must be odd and >= 3 (a centre pixel at the origin), not {size}")
-    img = np.zeros((2, size, size), np.uint8)
-    img[(0, *pixel(s.point, size))] = CODE_MAX
-    img[(1, *pixel(s.goal, size))] = CODE_MAX
+    n = image_side(observation, size)
+    img = np.zeros((2, n, n), np.uint8)
+    if observation == "image":
+        img[(0, *pixel(s.point, size))] = CODE_MAX
+        img[(1, *pixel(s.goal, size))] = CODE_MAX
+    else:  # twice the world's span, so every offset of the goal fits
+        img[(0, *pixel(np.zeros(2), n))] = CODE_MAX
+        img[(1, *pixel(0.5 * (s.goal - s.point), n))] = CODE_MAX
     return img
 
 

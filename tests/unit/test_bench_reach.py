@@ -18,13 +18,15 @@ def _turned(s: rt.ReachState, g) -> rt.ReachState:
     return rt.ReachState(R @ s.point, R @ s.goal)
 
 
+@pytest.mark.parametrize("observation", ["image", "centred"])
 @pytest.mark.parametrize("g", get_group("d4").elements)
-def test_turning_the_world_turns_the_image_and_the_step(g):
+def test_turning_the_world_turns_the_image_and_the_step(g, observation):
     rng = np.random.default_rng(3)
     for _ in range(50):
         s = rt.draw_start(rng)
-        img = torch.from_numpy(rt.observe(s, "image", 11))
-        assert torch.equal(torch.from_numpy(rt.observe(_turned(s, g), "image", 11)), transform_images(img, g))
+        img = torch.from_numpy(rt.observe(s, observation, 11))
+        turned = torch.from_numpy(rt.observe(_turned(s, g), observation, 11))
+        assert torch.equal(turned, transform_images(img, g))
         a = rng.uniform(-1.5, 1.5, 5).astype(np.float32)  # beyond the box too: clipping commutes
         ga = transform_actions(torch.from_numpy(a), g).numpy()
         nxt, r, done = rt.step(s, a)
@@ -42,6 +44,14 @@ def test_the_expert_reaches_every_goal_and_random_actions_rarely_do():
     assert sum(random) < 100
 
 
+def test_the_centred_image_marks_the_goal_at_its_offset_from_the_point():
+    s = rt.ReachState(np.array([0.6, -0.2]), np.array([-0.4, 0.8]))  # offset (-1.0, 1.0): 5 pixels each way
+    img = rt.observe(s, "centred", 11)
+    assert img.shape == (2, 21, 21)
+    assert [tuple(np.argwhere(img[c])[0]) for c in (0, 1)] == [(10, 10), (5, 15)]
+    assert img.sum() == 2 * 255
+
+
 def test_the_state_observation_codes_the_coordinates():
     s = rt.ReachState(np.array([-1.0, 1.0]), np.array([0.0, 0.5]))
     codes = rt.observe(s, "state", 11)
@@ -49,7 +59,7 @@ def test_the_state_observation_codes_the_coordinates():
     np.testing.assert_allclose(codes.ravel() / 255.0 * 2 - 1, [-1.0, 1.0, 0.0, 0.5], atol=1 / 255)
 
 
-@pytest.mark.parametrize("observation", ["state", "image"])
+@pytest.mark.parametrize("observation", ["state", "image", "centred"])
 def test_episodes_fit_the_learners_replay_as_they_were_acted(observation):
     cfg = rb.ReachBenchConfig(observation=observation)
     net = rb.net_config(cfg)
@@ -114,3 +124,13 @@ def test_bad_settings_are_refused_in_one_line():
         rb.ReachBenchConfig(observation="image", image_size=12)
     with pytest.raises(ValueError, match="--observation"):
         rb.ReachBenchConfig(observation="pixels")
+    with pytest.raises(ValueError, match="--alpha-loss"):
+        rb.ReachBenchConfig(alpha_loss="alpha2")
+
+
+def test_the_arm_names_what_differs_from_the_public_recipe():
+    assert rb.arm_name(rb.ReachBenchConfig()) == "state-none"
+    cfg = rb.ReachBenchConfig(observation="centred", group="c4", share_encoder=True, alpha_loss="log_alpha",
+                              alpha_lr=3e-4)  # fmt: skip
+    assert rb.arm_name(cfg) == "centred-c4-shared-log_alpha0.0003"
+    assert rb.sac_config(cfg).sac.alpha_loss == "log_alpha" and rb.sac_config(cfg).sac.share_encoder
