@@ -80,6 +80,8 @@ class ReachBenchConfig:
     """Temperature learning rate (the public 1e-3)."""
     alpha_loss: str = "alpha"
     """Temperature loss (``SacSettings.alpha_loss``): alpha (the public code) or log_alpha (SB3)."""
+    goal_steps: int = 0
+    """Show the goal in the first K observations only (0: always), so the policy must remember it."""
     share_encoder: bool = False
     """The actor reads the critic's encoder, detached (the public code: separate encoders)."""
     threads: int = 1
@@ -111,6 +113,8 @@ class ReachBenchConfig:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, not {getattr(self, name)}")
         if self.demos < 0 or self.random_episodes < 0 or self.demos + self.random_episodes < 1:
             raise ValueError("--demos and --random-episodes must be >= 0, and store at least one episode")
+        if self.goal_steps < 0:
+            raise ValueError(f"--goal-steps must be >= 0, not {self.goal_steps}")
         if self.alpha_loss not in ALPHA_LOSSES:
             raise ValueError(
                 f"--alpha-loss must be one of {', '.join(ALPHA_LOSSES)}, not {self.alpha_loss!r}"
@@ -132,7 +136,12 @@ def net_config(cfg: ReachBenchConfig) -> NetConfig:
     common = dict(image_embed=64, action_embed=16, q_action_embed=64, lstm_hidden=64, mlp_hidden=(64, 64))
     if cfg.observation == "state":
         return NetConfig(
-            group="none", image_size=1, in_channels=4, encoder=((16, 1, 1),), final_kernel=1, **common
+            group="none",
+            image_size=1,
+            in_channels=rt.channels("state", cfg.goal_steps),
+            encoder=((16, 1, 1),),
+            final_kernel=1,
+            **common,
         )
     n = rt.image_side(cfg.observation, cfg.image_size)
     first = 3 if (n - 3) // 2 % 2 == 0 else 5  # a grid symmetric under quarter turns (NetConfig's check)
@@ -193,17 +202,19 @@ def episode(
         gripper_pose=pose,
         object_poses=np.zeros((T + 1, 0, 7), np.float32),
         contacts=np.zeros((T + 1, 0), bool),
-        images=np.stack([rt.observe(s, cfg.observation, cfg.image_size) for s in states]),
+        images=np.stack(
+            [rt.observe(s, cfg.observation, cfg.image_size, t, cfg.goal_steps) for t, s in enumerate(states)]
+        ),
     )
 
 
 def rollout(
     start: rt.ReachState, act, cfg: ReachBenchConfig
 ) -> tuple[list[rt.ReachState], list[np.ndarray], bool]:
-    """One episode from ``start``; ``act(state) -> action``."""
+    """One episode from ``start``; ``act(state, t) -> action``."""
     states, actions, reached = [start], [], False
     while len(actions) < rt.MAX_STEPS and not reached:
-        a = np.asarray(act(states[-1]), np.float32)
+        a = np.asarray(act(states[-1], len(actions)), np.float32)
         s, _, reached = rt.step(states[-1], a)
         states.append(s)
         actions.append(a)
@@ -213,8 +224,8 @@ def rollout(
 def policy_act(runtime: ActorRuntime, cfg: ReachBenchConfig):
     runtime.reset()
 
-    def act(s: rt.ReachState) -> np.ndarray:
-        a = runtime.act(rt.observe(s, cfg.observation, cfg.image_size))
+    def act(s: rt.ReachState, t: int) -> np.ndarray:
+        a = runtime.act(rt.observe(s, cfg.observation, cfg.image_size, t, cfg.goal_steps))
         runtime.executed(a)
         return a
 
@@ -262,9 +273,9 @@ def train(cfg: ReachBenchConfig, seed: int, log=None) -> dict[str, Any]:
     while env_steps < cfg.env_steps:
         start = rt.draw_start(rng)
         if serial < cfg.demos:
-            kind, act = "expert_direct", rt.expert_action
+            kind, act = "expert_direct", lambda s, _t: rt.expert_action(s)
         elif serial < cfg.demos + cfg.random_episodes:
-            kind, act = "random", lambda _s: rng.uniform(-1.0, 1.0, ACTION_DIM)
+            kind, act = "random", lambda _s, _t: rng.uniform(-1.0, 1.0, ACTION_DIM)
         else:
             kind, act = "learned", policy_act(explore, cfg)
         states, actions, reached = rollout(start, act, cfg)
@@ -302,6 +313,8 @@ def first_solved(curve: list[dict[str, float]], level: float = 0.9) -> int | Non
 def arm_name(cfg: ReachBenchConfig) -> str:
     """observation-group, then what differs from the public recipe."""
     parts = [cfg.observation, cfg.group]
+    if cfg.goal_steps:
+        parts.append(f"goal{cfg.goal_steps}")
     if cfg.share_encoder:
         parts.append("shared")
     if (cfg.alpha_loss, cfg.alpha_lr) != ("alpha", 1e-3):

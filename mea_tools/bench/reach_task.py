@@ -80,26 +80,38 @@ def image_side(observation: str, size: int) -> int:
     return 1 if observation == "state" else 2 * size - 1 if observation == "centred" else size
 
 
-def observe(s: ReachState, observation: str, size: int) -> np.ndarray:
-    """uint8 codes (C, H, W): ``state`` (4, 1, 1) the coordinates in [-1, 1] as 0..255; ``image``
-    (2, size, size) with the point's pixel in channel 0 and the goal's in channel 1; ``centred``
-    (2, 2 size - 1, 2 size - 1), the same at the same scale, shifted to put the point at the centre."""
-    if observation == "state":
-        return _code(np.concatenate([s.point, s.goal])).reshape(4, 1, 1)
+def observe(s: ReachState, observation: str, size: int, t: int = 0, goal_steps: int = 0) -> np.ndarray:
+    """uint8 codes (C, H, W) of the observation at step ``t``: ``state`` (4, 1, 1) the coordinates in
+    [-1, 1] as 0..255; ``image`` (2, size, size) with the point's pixel in channel 0 and the goal's in
+    channel 1; ``centred`` (2, 2 size - 1, 2 size - 1), the same at the same scale, shifted to put the
+    point at the centre.
+
+    ``goal_steps`` K > 0 shows the goal in the first K observations only, so that a policy must
+    remember it: the images then lack its mark, and the state gains a fifth channel saying whether it
+    is shown (its coordinates read 0 when not)."""
     if observation not in OBSERVATIONS:
         raise ValueError(f"observation must be one of {OBSERVATIONS}, not {observation!r}")
+    shown = goal_steps == 0 or t < goal_steps
+    if observation == "state":
+        goal = s.goal if shown else np.zeros(2)
+        flag = [1.0 if shown else -1.0] if goal_steps else []
+        codes = _code(np.concatenate([s.point, goal, flag]))
+        return codes.reshape(-1, 1, 1)
     if size < 3 or size % 2 == 0:
         raise ValueError(f"the image size must be odd and >= 3 (a centre pixel at the origin), not {size}")
     n = image_side(observation, size)
     img = np.zeros((2, n, n), np.uint8)
     if observation == "image":
         img[(0, *pixel(s.point, size))] = CODE_MAX
-        img[(1, *pixel(s.goal, size))] = CODE_MAX
+        if shown:
+            img[(1, *pixel(s.goal, size))] = CODE_MAX
     else:  # twice the world's span, so every offset of the goal fits
         img[(0, *pixel(np.zeros(2), n))] = CODE_MAX
-        img[(1, *pixel(0.5 * (s.goal - s.point), n))] = CODE_MAX
+        if shown:
+            img[(1, *pixel(0.5 * (s.goal - s.point), n))] = CODE_MAX
     return img
 
 
-def channels(observation: str) -> int:
-    return 4 if observation == "state" else 2
+def channels(observation: str, goal_steps: int = 0) -> int:
+    """Channels of ``observe``'s codes."""
+    return (5 if goal_steps else 4) if observation == "state" else 2

@@ -13,6 +13,10 @@ from services.algorithms.groups import get_group, matrix, transform_actions, tra
 from services.algorithms.replay import SequenceReplay
 
 
+def _expert(s: rt.ReachState, _t: int):
+    return rt.expert_action(s)
+
+
 def _turned(s: rt.ReachState, g) -> rt.ReachState:
     R = np.array(matrix(g), float)
     return rt.ReachState(R @ s.point, R @ s.goal)
@@ -37,10 +41,12 @@ def test_turning_the_world_turns_the_image_and_the_step(g, observation):
 
 def test_the_expert_reaches_every_goal_and_random_actions_rarely_do():
     rng = np.random.default_rng(0)
-    wins = [rb.rollout(rt.draw_start(rng), rt.expert_action, rb.ReachBenchConfig())[2] for _ in range(200)]
+    wins = [rb.rollout(rt.draw_start(rng), _expert, rb.ReachBenchConfig())[2] for _ in range(200)]
     assert all(wins)
     cfg = rb.ReachBenchConfig()
-    random = [rb.rollout(rt.draw_start(rng), lambda _s: rng.uniform(-1, 1, 5), cfg)[2] for _ in range(200)]
+    random = [
+        rb.rollout(rt.draw_start(rng), lambda _s, _t: rng.uniform(-1, 1, 5), cfg)[2] for _ in range(200)
+    ]
     assert sum(random) < 100
 
 
@@ -50,6 +56,30 @@ def test_the_centred_image_marks_the_goal_at_its_offset_from_the_point():
     assert img.shape == (2, 21, 21)
     assert [tuple(np.argwhere(img[c])[0]) for c in (0, 1)] == [(10, 10), (5, 15)]
     assert img.sum() == 2 * 255
+
+
+@pytest.mark.parametrize("observation", ["state", "image", "centred"])
+def test_a_goal_shown_for_k_steps_is_gone_from_the_observation_after_them(observation):
+    s = rt.ReachState(np.array([0.6, -0.2]), np.array([-0.4, 0.8]))
+    seen = [rt.observe(s, observation, 11, t, goal_steps=2) for t in range(4)]
+    assert np.array_equal(seen[0], seen[1]) and np.array_equal(seen[2], seen[3])
+    if observation == "state":
+        assert seen[0].shape == (5, 1, 1) and seen[0][4, 0, 0] == 255 and seen[2][4, 0, 0] == 0
+        np.testing.assert_array_equal(seen[0][:2], seen[2][:2])  # the point stays
+    else:
+        np.testing.assert_array_equal(seen[0][0], seen[2][0])
+        assert seen[0][1].sum() == 255 and seen[2][1].sum() == 0
+    assert np.array_equal(
+        rt.observe(s, observation, 11, 9), rt.observe(s, observation, 11, 0)
+    )  # K = 0: always
+
+
+def test_episodes_store_what_the_policy_saw_at_each_step_of_a_hidden_goal():
+    cfg = rb.ReachBenchConfig(goal_steps=1)
+    states, actions, reached = rb.rollout(rt.draw_start(np.random.default_rng(2)), _expert, cfg)
+    ep = rb.episode(states, actions, reached, cfg, "expert_direct", 0)
+    assert ep.images.shape == (len(states), 5, 1, 1) and rb.net_config(cfg).in_channels == 5
+    assert ep.images[0, 4, 0, 0] == 255 and (ep.images[1:, 4] == 0).all()
 
 
 def test_the_state_observation_codes_the_coordinates():
@@ -63,7 +93,7 @@ def test_the_state_observation_codes_the_coordinates():
 def test_episodes_fit_the_learners_replay_as_they_were_acted(observation):
     cfg = rb.ReachBenchConfig(observation=observation)
     net = rb.net_config(cfg)
-    states, actions, reached = rb.rollout(rt.draw_start(np.random.default_rng(1)), rt.expert_action, cfg)
+    states, actions, reached = rb.rollout(rt.draw_start(np.random.default_rng(1)), _expert, cfg)
     ep = rb.episode(states, actions, reached, cfg, "expert_direct", 0)
     replay = SequenceReplay(1000, image_size=net.image_size, seq_len=rt.MAX_STEPS, constant_channels=(),
                             channels=net.in_channels, seed=0)  # fmt: skip
@@ -96,7 +126,7 @@ def test_a_learner_that_imitates_the_expert_solves_the_state_task():
     greedy = rb.ActorRuntime.of(agent.actor, sac.spec(), deterministic=True)
     before = rb.evaluate(greedy, cfg)
     rng = np.random.default_rng(0)
-    eps = [rb.rollout(rt.draw_start(rng), rt.expert_action, cfg) for _ in range(60)]
+    eps = [rb.rollout(rt.draw_start(rng), _expert, cfg) for _ in range(60)]
     opt = torch.optim.Adam(agent.actor.parameters(), lr=3e-3)
     for _ in range(300):
         loss = 0.0
