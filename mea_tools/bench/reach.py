@@ -82,6 +82,10 @@ class ReachBenchConfig:
     """Temperature loss (``SacSettings.alpha_loss``): alpha (the public code) or log_alpha (SB3)."""
     goal_steps: int = 0
     """Show the goal in the first K observations only (0: always), so the policy must remember it."""
+    actor_prev_action: bool = True
+    """The actor's LSTM reads a_{t-1} (Equi-RSAC); the critic's always does."""
+    fixed_alpha: float = 0.0
+    """Hold α at this value instead of tuning it (0: tuned from 0.1)."""
     share_encoder: bool = False
     """The actor reads the critic's encoder, detached (the public code: separate encoders)."""
     threads: int = 1
@@ -113,6 +117,8 @@ class ReachBenchConfig:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, not {getattr(self, name)}")
         if self.demos < 0 or self.random_episodes < 0 or self.demos + self.random_episodes < 1:
             raise ValueError("--demos and --random-episodes must be >= 0, and store at least one episode")
+        if self.fixed_alpha < 0:
+            raise ValueError(f"--fixed-alpha must be >= 0 (0: tuned), not {self.fixed_alpha}")
         if self.goal_steps < 0:
             raise ValueError(f"--goal-steps must be >= 0, not {self.goal_steps}")
         if self.alpha_loss not in ALPHA_LOSSES:
@@ -133,7 +139,8 @@ class ReachBenchConfig:
 def net_config(cfg: ReachBenchConfig) -> NetConfig:
     """Small widths: for the state a 1 x 1 "image" of four channels, so the encoder is an MLP on the
     coordinates; for the image two stride-2 convolutions."""
-    common = dict(image_embed=64, action_embed=16, q_action_embed=64, lstm_hidden=64, mlp_hidden=(64, 64))
+    common = dict(image_embed=64, action_embed=16, q_action_embed=64, lstm_hidden=64, mlp_hidden=(64, 64),
+                  actor_prev_action=cfg.actor_prev_action)  # fmt: skip
     if cfg.observation == "state":
         return NetConfig(
             group="none",
@@ -162,7 +169,13 @@ def sac_config(cfg: ReachBenchConfig) -> SacConfig:
     return SacConfig(
         name=name,
         net=net_config(cfg),
-        sac=SacSettings(alpha_lr=cfg.alpha_lr, alpha_loss=cfg.alpha_loss, share_encoder=cfg.share_encoder),
+        sac=SacSettings(
+            alpha_lr=cfg.alpha_lr,
+            alpha_loss=cfg.alpha_loss,
+            share_encoder=cfg.share_encoder,
+            init_alpha=cfg.fixed_alpha or 0.1,
+            autotune_alpha=not cfg.fixed_alpha,
+        ),
     )
 
 
@@ -315,6 +328,10 @@ def arm_name(cfg: ReachBenchConfig) -> str:
     parts = [cfg.observation, cfg.group]
     if cfg.goal_steps:
         parts.append(f"goal{cfg.goal_steps}")
+    if not cfg.actor_prev_action:
+        parts.append("noprev")
+    if cfg.fixed_alpha:
+        parts.append(f"alpha{cfg.fixed_alpha:g}")
     if cfg.share_encoder:
         parts.append("shared")
     if (cfg.alpha_loss, cfg.alpha_lr) != ("alpha", 1e-3):

@@ -154,6 +154,10 @@ def test_bad_settings_are_refused_in_one_line():
         rb.ReachBenchConfig(observation="image", image_size=12)
     with pytest.raises(ValueError, match="--observation"):
         rb.ReachBenchConfig(observation="pixels")
+    with pytest.raises(ValueError, match="--fixed-alpha"):
+        rb.ReachBenchConfig(fixed_alpha=-1.0)
+    with pytest.raises(ValueError, match="--goal-steps"):
+        rb.ReachBenchConfig(goal_steps=-1)
     with pytest.raises(ValueError, match="--alpha-loss"):
         rb.ReachBenchConfig(alpha_loss="alpha2")
 
@@ -164,3 +168,8 @@ def test_the_arm_names_what_differs_from_the_public_recipe():
                               alpha_lr=3e-4)  # fmt: skip
     assert rb.arm_name(cfg) == "centred-c4-shared-log_alpha0.0003"
     assert rb.sac_config(cfg).sac.alpha_loss == "log_alpha" and rb.sac_config(cfg).sac.share_encoder
+    held = rb.ReachBenchConfig(goal_steps=1, actor_prev_action=False, fixed_alpha=0.005)
+    assert rb.arm_name(held) == "state-none-goal1-noprev-alpha0.005"
+    sac = rb.sac_config(held)
+    assert not sac.net.actor_prev_action and sac.sac.init_alpha == 0.005 and not sac.sac.autotune_alpha
+    assert rb.sac_config(rb.ReachBenchConfig()).sac.autotune_alpha
