@@ -54,8 +54,7 @@ class ReachBenchConfig:
     """Recurrent SAC (the public recipe) on the sparse-reward reach, per seed, beside the known answer."""
 
     observation: str = "state"
-    """What the policy sees: state (the 4 coordinates), image (point and goal marked) or centred (the
-    goal's offset from the point, as a gripper-centred image)."""
+    """state (4 coordinates), image (point and goal marked) or centred (the goal's offset, centred)."""
     group: str = "none"
     """Networks: none (plain layers) or c4 (Equi-RSAC's; image only)."""
     env_steps: int = 12000
@@ -91,7 +90,7 @@ class ReachBenchConfig:
     threads: int = 1
     """torch intra-op threads."""
     out: Path | None = None
-    """Write DIR/reach-<observation>-<group>-s<seed>.jsonl (one line per evaluation) and DIR/reach.json."""
+    """Write DIR/reach-<arm>-s<seed>.jsonl (one line per evaluation) and DIR/reach.json."""
     json: bool = False
     """Print exactly one JSON object instead of tables."""
 
