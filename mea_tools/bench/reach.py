@@ -31,6 +31,7 @@ from mea_tools.bench import reach_task as rt
 from mea_tools.bench.report import emit
 from proto.actions import ACTION_DIM
 from proto.episode import Episode
+from proto.seeds import EVAL_SEED_BASE
 from services.algorithms.batch import to_batch
 from services.algorithms.networks import NetConfig
 from services.algorithms.replay import SequenceReplay
@@ -39,8 +40,6 @@ from services.algorithms.sac.config import ALPHA_LOSSES, SacSettings
 from services.algorithms.sac.policy import ActorRuntime
 
 GROUPS = ("none", "c4")
-EVAL_SEED_BASE = 1_000_000_000
-"""Seeds of the evaluation starts (the same for every run)."""
 KNOWN_STATE = {
     "known answer: SB3 SAC, state, s0": (0.00, 0.00, 0.00, 0.25, 0.70, 1.00),
     "known answer: SB3 SAC, state, s1": (0.00, 0.00, 0.00, 0.20, 0.20, 1.00),
@@ -106,9 +105,7 @@ class ReachBenchConfig:
                 "--group c4 needs --observation image or centred (the state's coordinates are not images)"
             )
         if self.observation != "state":
-            rt.observe(
-                rt.draw_start(np.random.default_rng(0)), self.observation, self.image_size
-            )  # size check
+            rt.check_image_size(self.image_size)
         if not self.seeds or min(self.seeds) < 0:
             raise ValueError(f"--seeds must be one or more seeds >= 0, not {list(self.seeds)}")
         for name in ("env_steps", "eval_every", "eval_goals", "batch_size", "threads"):
@@ -152,7 +149,7 @@ def net_config(cfg: ReachBenchConfig) -> NetConfig:
     n = rt.image_side(cfg.observation, cfg.image_size)
     first = 3 if (n - 3) // 2 % 2 == 0 else 5  # a grid symmetric under quarter turns (NetConfig's check)
     encoder = ((8, first, 2), (16, 3, 2))
-    return NetConfig(group=cfg.group, image_size=n, in_channels=2, encoder=encoder,
+    return NetConfig(group=cfg.group, image_size=n, in_channels=rt.channels(cfg.observation), encoder=encoder,
                      final_kernel=_final_kernel(n, encoder), **common)  # fmt: skip
 
 
@@ -245,7 +242,7 @@ def policy_act(runtime: ActorRuntime, cfg: ReachBenchConfig):
 
 
 def evaluate(runtime: ActorRuntime, cfg: ReachBenchConfig) -> float:
-    """Deterministic success on the fixed starts."""
+    """Deterministic success on the fixed starts (seeded like the evaluator's held-out seeds)."""
     wins = 0
     for i in range(cfg.eval_goals):
         start = rt.draw_start(np.random.default_rng(EVAL_SEED_BASE + i))

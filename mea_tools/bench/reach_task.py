@@ -75,6 +75,12 @@ def pixel(v: np.ndarray, size: int) -> tuple[int, int]:
     return int(i[0]), int(i[1])
 
 
+def check_image_size(size: int) -> None:
+    """ValueError unless the world image's ``size`` is odd and >= 3 (a centre pixel at the origin)."""
+    if size < 3 or size % 2 == 0:
+        raise ValueError(f"the image size must be odd and >= 3 (a centre pixel at the origin), not {size}")
+
+
 def image_side(observation: str, size: int) -> int:
     """H = W of an observation's image for the world image's ``size``."""
     return 1 if observation == "state" else 2 * size - 1 if observation == "centred" else size
@@ -97,8 +103,7 @@ def observe(s: ReachState, observation: str, size: int, t: int = 0, goal_steps: 
         flag = [1.0 if shown else -1.0] if goal_steps else []
         codes = _code(np.concatenate([s.point, goal, flag]))
         return codes.reshape(-1, 1, 1)
-    if size < 3 or size % 2 == 0:
-        raise ValueError(f"the image size must be odd and >= 3 (a centre pixel at the origin), not {size}")
+    check_image_size(size)
     n = image_side(observation, size)
     img = np.zeros((2, n, n), np.uint8)
     if observation == "image":

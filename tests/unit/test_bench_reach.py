@@ -11,6 +11,7 @@ from mea_tools.bench import reach as rb
 from mea_tools.bench import reach_task as rt
 from services.algorithms.groups import get_group, matrix, transform_actions, transform_images
 from services.algorithms.replay import SequenceReplay
+from services.algorithms.tensors import images_from_codes
 
 
 def _expert(s: rt.ReachState, _t: int):
@@ -131,10 +132,9 @@ def test_a_learner_that_imitates_the_expert_solves_the_state_task():
     for _ in range(300):
         loss = 0.0
         for states, actions, _ in eps[::6]:
-            img = (
-                torch.from_numpy(np.stack([rt.observe(s, "state", 1) for s in states[:-1]]))[None].float()
-                / 255
-            )
+            img = images_from_codes(
+                torch.from_numpy(np.stack([rt.observe(s, "state", 1) for s in states[:-1]]))
+            )[None]
             prev = torch.from_numpy(np.concatenate([np.zeros((1, 5), np.float32), np.stack(actions)[:-1]]))[
                 None
             ]
