@@ -3,10 +3,12 @@ its replay of whole episodes, its networks and its policy runtime) trained with 
 recipe on a sparse-reward 2D reach (``reach_task``), by the state or by pixels, beside what a
 well-kept SAC does on the same task.
 
-Known answer (docs/results.md, "The RL core against a known answer"): Stable-Baselines3 2.9.2's SAC
-with the same γ, τ, learning rate, α₀, target entropy, batch of 32 and the same 15 demonstrations
-solves the reach from the state by 12K env steps on both seeds it ran (1.00 on the 20 goals from
-11.5-12K, 0 until 7K). Through the 11 x 11 image it stays at 0.00-0.15 to 16K.
+Known answers (docs/results.md, "The RL core against a known answer" and "The memory reach against
+the public code's own learner"): Stable-Baselines3 2.9.2's SAC with the same γ, τ, learning rate,
+α₀, target entropy, batch of 32 and the same 15 demonstrations solves the reach from the state by
+12K env steps on both seeds it ran (1.00 on the 20 goals from 11.5-12K, 0 until 7K); through the
+11 x 11 image it stays at 0.00-0.15 to 16K. The public Equi-RSAC code's own recurrent SAC, with the
+goal shown once (``goal_steps`` 1), reaches 0.20-0.45 by 10K.
 
 The loop is the public code's order: the demonstrations, then the random episodes, then one rollout
 of the current stochastic policy at a time; after each episode, one update per env step it added.
@@ -33,6 +35,7 @@ from proto.actions import ACTION_DIM
 from proto.episode import Episode
 from proto.seeds import EVAL_SEED_BASE
 from services.algorithms.batch import to_batch
+from services.algorithms.imitation import Cloner, CloneSettings
 from services.algorithms.networks import NetConfig
 from services.algorithms.replay import SequenceReplay
 from services.algorithms.sac.algorithm import SacConfig
@@ -40,11 +43,22 @@ from services.algorithms.sac.config import ALPHA_LOSSES, SacSettings
 from services.algorithms.sac.policy import ActorRuntime
 
 GROUPS = ("none", "c4")
-KNOWN_STATE = {
-    "known answer: SB3 SAC, state, s0": (0.00, 0.00, 0.00, 0.25, 0.70, 1.00),
-    "known answer: SB3 SAC, state, s1": (0.00, 0.00, 0.00, 0.20, 0.20, 1.00),
+KNOWN: dict[tuple[str, int], dict[str, tuple[float | None, ...]]] = {
+    ("state", 0): {
+        "known answer: SB3 SAC, state, s0": (0.00, 0.00, 0.00, 0.25, 0.70, 1.00),
+        "known answer: SB3 SAC, state, s1": (0.00, 0.00, 0.00, 0.20, 0.20, 1.00),
+        "known answer: the public code's recurrent SAC, s0": (0.10, 0.30, 1.00, None, None, None),
+        "known answer: the public code's recurrent SAC, s1": (0.00, 0.45, 0.90, None, None, None),
+    },
+    ("state", 1): {
+        "known answer: the public code's recurrent SAC, s0": (0.00, 0.15, 0.20, 0.25, 0.20, None),
+        "known answer: the public code's recurrent SAC, s1": (0.00, 0.10, 0.20, 0.10, 0.45, None),
+    },
 }
-"""Success at ``KNOWN_MILESTONES`` env steps of the reference runs (docs/results.md)."""
+"""Success at ``KNOWN_MILESTONES`` env steps of the reference runs per (observation, goal steps), the
+same task and recipe (docs/results.md): Stable-Baselines3 2.9.2's SAC with the goal in view, and the
+public Equi-RSAC code's own recurrent SAC (its plain LSTM actor and critic, its replay; run to 6.5K
+with the goal in view, 10K with it shown once)."""
 KNOWN_MILESTONES = (2000, 4000, 6000, 8000, 10000, 12000)
 
 
@@ -84,8 +98,12 @@ class ReachBenchConfig:
     """The actor's LSTM reads a_{t-1} (Equi-RSAC); the critic's always does."""
     fixed_alpha: float = 0.0
     """Hold α at this value instead of tuning it (0: tuned from 0.1)."""
+    backup_entropy: bool = True
+    """Critic targets include the entropy bonus (``SacSettings.backup_entropy``)."""
     share_encoder: bool = False
     """The actor reads the critic's encoder, detached (the public code: separate encoders)."""
+    clone_updates: int = 0
+    """BC updates of the actor on the demonstrations before the first learned rollout (0: none)."""
     threads: int = 1
     """torch intra-op threads."""
     out: Path | None = None
@@ -117,6 +135,8 @@ class ReachBenchConfig:
             raise ValueError(f"--fixed-alpha must be >= 0 (0: tuned), not {self.fixed_alpha}")
         if self.goal_steps < 0:
             raise ValueError(f"--goal-steps must be >= 0, not {self.goal_steps}")
+        if self.clone_updates < 0 or (self.clone_updates and not self.demos):
+            raise ValueError(f"--clone-updates must be >= 0 and needs --demos > 0, not {self.clone_updates}")
         if self.alpha_loss not in ALPHA_LOSSES:
             raise ValueError(
                 f"--alpha-loss must be one of {', '.join(ALPHA_LOSSES)}, not {self.alpha_loss!r}"
@@ -171,6 +191,7 @@ def sac_config(cfg: ReachBenchConfig) -> SacConfig:
             share_encoder=cfg.share_encoder,
             init_alpha=cfg.fixed_alpha or 0.1,
             autotune_alpha=not cfg.fixed_alpha,
+            backup_entropy=cfg.backup_entropy,
         ),
     )
 
@@ -243,11 +264,36 @@ def policy_act(runtime: ActorRuntime, cfg: ReachBenchConfig):
 
 def evaluate(runtime: ActorRuntime, cfg: ReachBenchConfig) -> float:
     """Deterministic success on the fixed starts (seeded like the evaluator's held-out seeds)."""
-    wins = 0
+    return evaluate_headings(runtime, cfg)["success"]
+
+
+LATER_MOVES = 2
+"""Moves after the first that ``evaluate_headings`` reads: from the nearest start
+(``MIN_START_DISTANCE``) to within ``RADIUS`` takes at least three diagonal steps."""
+
+
+def heading(s: rt.ReachState, action: np.ndarray) -> float:
+    """cos of the angle between the move (dx, dy) and the way to the goal (0 for no move)."""
+    move, way = np.clip(action[1:3], -1.0, 1.0), s.goal - s.point
+    norm = float(np.linalg.norm(move) * np.linalg.norm(way))
+    return float(move @ way) / norm if norm > 0 else 0.0
+
+
+def evaluate_headings(runtime: ActorRuntime, cfg: ReachBenchConfig) -> dict[str, float]:
+    """``evaluate``'s success, and the mean heading (``heading``) of the first move and of the next
+    ``LATER_MOVES`` (every start needs them: they never end at the goal or rest on a wall): with the
+    goal hidden after the first step, a policy that sees it but cannot carry it scores high on the
+    first and low on the next."""
+    wins, first, later = 0, [], []
     for i in range(cfg.eval_goals):
         start = rt.draw_start(np.random.default_rng(EVAL_SEED_BASE + i))
-        wins += rollout(start, policy_act(runtime, cfg), cfg)[2]
-    return wins / cfg.eval_goals
+        states, actions, reached = rollout(start, policy_act(runtime, cfg), cfg)
+        wins += reached
+        cos = [heading(s, a) for s, a in zip(states, actions, strict=False)]
+        first.append(cos[0])
+        later += cos[1 : 1 + LATER_MOVES]
+    return {"success": wins / cfg.eval_goals, "heading_first": float(np.mean(first)),
+            "heading_later": float(np.mean(later)) if later else math.nan}  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------------
@@ -272,7 +318,7 @@ def train(cfg: ReachBenchConfig, seed: int, log=None) -> dict[str, Any]:
     t0 = time.perf_counter()
 
     def record() -> None:
-        row = {"env_steps": env_steps, "success": evaluate(greedy, cfg), "updates": agent.updates,
+        row = {"env_steps": env_steps, **evaluate_headings(greedy, cfg), "updates": agent.updates,
                "alpha": stats.get("alpha", math.nan), "entropy": stats.get("entropy", math.nan)}  # fmt: skip
         curve.append(row)
         if log is not None:
@@ -299,6 +345,11 @@ def train(cfg: ReachBenchConfig, seed: int, log=None) -> dict[str, Any]:
             stats = agent.update(batch)
             credit -= 1.0
         update_seconds += time.perf_counter() - u0
+        if cfg.clone_updates and serial == cfg.demos + cfg.random_episodes:
+            # the actor (not the critic, nor its own optimiser) starts from a clone of the demos
+            clone = CloneSettings(batch_size=cfg.batch_size, lr=sac.sac.lr, demo_fraction=1.0)
+            Cloner(agent.actor, replay, rng, clone).run(cfg.clone_updates)
+            record()  # before its first rollout
         if env_steps // cfg.eval_every > before // cfg.eval_every:
             record()
     wall = time.perf_counter() - t0
@@ -319,6 +370,10 @@ def first_solved(curve: list[dict[str, float]], level: float = 0.9) -> int | Non
     return next((int(r["env_steps"]) for r in curve if r["success"] >= level), None)
 
 
+def _headings(row: dict[str, float]) -> str:
+    return f"{row['heading_first']:.2f} / {row['heading_later']:.2f}"
+
+
 def arm_name(cfg: ReachBenchConfig) -> str:
     """observation-group, then what differs from the public recipe."""
     parts = [cfg.observation, cfg.group]
@@ -328,11 +383,24 @@ def arm_name(cfg: ReachBenchConfig) -> str:
         parts.append("noprev")
     if cfg.fixed_alpha:
         parts.append(f"alpha{cfg.fixed_alpha:g}")
+    if not cfg.backup_entropy:
+        parts.append("nobackup")
     if cfg.share_encoder:
         parts.append("shared")
+    if cfg.clone_updates:
+        parts.append(f"clone{cfg.clone_updates}")
     if (cfg.alpha_loss, cfg.alpha_lr) != ("alpha", 1e-3):
         parts.append(f"{cfg.alpha_loss}{cfg.alpha_lr:g}")
     return "-".join(parts)
+
+
+def known_rows(cfg: ReachBenchConfig) -> list[dict[str, Any]]:
+    """The table's rows of the known answers for this observation and goal steps (none elsewhere)."""
+    return [
+        {"run": name, **{f"{m // 1000}K": v for m, v in zip(KNOWN_MILESTONES, vals, strict=True)},
+         "first >= 0.9": None, "heading 1st / next (last)": None, "update ms": None, "wall s": None}
+        for name, vals in KNOWN.get((cfg.observation, cfg.goal_steps), {}).items()
+    ]  # fmt: skip
 
 
 def run(cfg: ReachBenchConfig) -> dict[str, Any]:
@@ -356,17 +424,15 @@ def run(cfg: ReachBenchConfig) -> dict[str, Any]:
     rows = [
         {"run": f"this learner, {arm}, s{r['seed']}",
          **{f"{m // 1000}K": at(r["curve"], m) for m in KNOWN_MILESTONES},
-         "first >= 0.9": first_solved(r["curve"]), "update ms": r["update_ms"], "wall s": r["wall_seconds"]}
+         "first >= 0.9": first_solved(r["curve"]), "heading 1st / next (last)": _headings(r["curve"][-1]),
+         "update ms": r["update_ms"], "wall s": r["wall_seconds"]}
         for r in runs
     ]  # fmt: skip
-    known = [
-        {"run": name, **{f"{m // 1000}K": v for m, v in zip(KNOWN_MILESTONES, vals, strict=True)},
-         "first >= 0.9": None, "update ms": None, "wall s": None}
-        for name, vals in KNOWN_STATE.items()
-    ]  # fmt: skip
+    known = known_rows(cfg)
+    title = "beside the known answer" if known else "no known answer for this task"
     result = emit(
         "reach",
-        {"success on 20 fixed goals, beside the known answer (state)": rows + known},
+        {f"success on {cfg.eval_goals} fixed goals, {title}": rows + known},
         {},
         cfg.json,
         meta={"config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}},

@@ -45,7 +45,7 @@ class NetConfig:
     """Widths of the Equi-RSAC networks. Channel counts (embeddings, LSTM, MLP) include the group axis."""
 
     group: str = "c4"
-    """'c4' | 'd4' | 'none' (the non-equivariant RSAC twin)."""
+    """c4, d4 or none (RSAC, not equivariant)."""
     image_size: int = 84
     """H = W of the input images."""
     in_channels: int = 2
@@ -53,7 +53,7 @@ class NetConfig:
     encoder: tuple[tuple[int, int, int], ...] = ((8, 8, 4), (16, 4, 2), (16, 3, 1), (16, 3, 1), (16, 3, 1))
     """(fields, kernel, stride) of each conv + ReLU layer."""
     final_kernel: int = 3
-    """Kernel of the final conv (must leave a 1x1 map)."""
+    """Final conv kernel (leaves a 1x1 map)."""
     image_embed: int = 128
     """Channels of the image embedding."""
     action_embed: int = 16
@@ -69,13 +69,13 @@ class NetConfig:
     critic_layer_norm: bool = False
     """LayerNorm in the Q MLPs (RLPD)."""
     critic_input: str = "image"
-    """Critic input: image or state (simulation only)."""
+    """Critic input: image or state (sim only)."""
     state_critic_hidden: tuple[int, ...] = (256, 256)
     """Widths of the state critic's Q MLPs."""
     xy_range: str = "box"
-    """(dx, dy): box (tanh per axis) or disc (radial tanh)."""
+    """(dx, dy): box (tanh per axis) or disc (radial)."""
     kernel_basis: str = "free"
-    """Encoder kernels: free or steerable (escnn's basis, c4)."""
+    """Encoder kernels: free or steerable (escnn's, c4)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "encoder", tuple(tuple(int(v) for v in layer) for layer in self.encoder))

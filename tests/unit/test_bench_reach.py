@@ -147,6 +147,38 @@ def test_a_learner_that_imitates_the_expert_solves_the_state_task():
     assert before <= 0.2 and after >= 0.8, (before, after)
 
 
+def test_heading_is_the_cosine_between_the_move_and_the_way_to_the_goal():
+    s = rt.ReachState(np.zeros(2), np.array([1.0, 0.0]))
+    move = lambda dx, dy: np.array([0.0, dx, dy, 0.0, 0.0], np.float32)  # noqa: E731
+    assert rb.heading(s, move(1.0, 0.0)) == pytest.approx(1.0)
+    assert rb.heading(s, move(-0.5, 0.0)) == pytest.approx(-1.0)
+    assert rb.heading(s, move(0.0, 0.7)) == pytest.approx(0.0, abs=1e-12)
+    assert rb.heading(s, move(0.3, 0.3)) == pytest.approx(np.sqrt(0.5))
+    assert rb.heading(s, move(0.0, 0.0)) == 0.0  # no move: no heading
+
+
+def test_clone_updates_start_the_actor_from_a_clone_of_the_demonstrations():
+    """With ``clone_updates`` the actor is cloned from the stored demos before its first rollout: the
+    evaluation recorded there heads for the goal, first move and next, where the untrained actor does
+    not; the clone's updates are not SAC updates (one per env step, as before)."""
+    cfg = rb.ReachBenchConfig(env_steps=70, demos=10, random_episodes=0, eval_every=10000, eval_goals=5,
+                              batch_size=8, clone_updates=150)  # fmt: skip
+    out = rb.train(cfg, seed=0)
+    start, cloned = out["curve"][0], out["curve"][1]
+    assert start["heading_first"] < 0.5 and start["heading_later"] < 0.5, start
+    assert cloned["heading_first"] > 0.9 and cloned["heading_later"] > 0.9, cloned
+    assert cloned["updates"] == cloned["env_steps"] and out["updates"] == out["env_steps"]
+
+
+def test_the_known_answers_shown_are_those_of_the_task_run():
+    state = [r["run"] for r in rb.known_rows(rb.ReachBenchConfig())]
+    memory = [r["run"] for r in rb.known_rows(rb.ReachBenchConfig(goal_steps=1))]
+    assert any("SB3" in r for r in state) and not any("SB3" in r for r in memory)
+    assert len(memory) == 2 and all("public code" in r for r in memory)
+    assert rb.known_rows(rb.ReachBenchConfig(observation="centred", group="c4")) == []
+    assert rb.known_rows(rb.ReachBenchConfig(goal_steps=2)) == []
+
+
 def test_bad_settings_are_refused_in_one_line():
     with pytest.raises(ValueError, match="--group c4 needs --observation image"):
         rb.ReachBenchConfig(group="c4")
@@ -160,6 +192,8 @@ def test_bad_settings_are_refused_in_one_line():
         rb.ReachBenchConfig(goal_steps=-1)
     with pytest.raises(ValueError, match="--alpha-loss"):
         rb.ReachBenchConfig(alpha_loss="alpha2")
+    with pytest.raises(ValueError, match="--clone-updates"):
+        rb.ReachBenchConfig(clone_updates=10, demos=0)
 
 
 def test_the_arm_names_what_differs_from_the_public_recipe():
@@ -168,8 +202,8 @@ def test_the_arm_names_what_differs_from_the_public_recipe():
                               alpha_lr=3e-4)  # fmt: skip
     assert rb.arm_name(cfg) == "centred-c4-shared-log_alpha0.0003"
     assert rb.sac_config(cfg).sac.alpha_loss == "log_alpha" and rb.sac_config(cfg).sac.share_encoder
-    held = rb.ReachBenchConfig(goal_steps=1, actor_prev_action=False, fixed_alpha=0.005)
-    assert rb.arm_name(held) == "state-none-goal1-noprev-alpha0.005"
+    held = rb.ReachBenchConfig(goal_steps=1, actor_prev_action=False, fixed_alpha=0.005, clone_updates=500)
+    assert rb.arm_name(held) == "state-none-goal1-noprev-alpha0.005-clone500"
     sac = rb.sac_config(held)
     assert not sac.net.actor_prev_action and sac.sac.init_alpha == 0.005 and not sac.sac.autotune_alpha
     assert rb.sac_config(rb.ReachBenchConfig()).sac.autotune_alpha

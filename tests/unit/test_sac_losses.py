@@ -132,6 +132,9 @@ def test_critic_targets_reference_numbers():
     # a truncated last step bootstraps from the stored last observation: 0.5 + 0.9 * (3 + 0.2)
     trunc = Batch(batch.images, batch.actions, batch.rewards, torch.zeros(1, 2), batch.mask)
     assert critic_targets(target, trunc, policy, 0.1, 0.9)[0, 1].item() == pytest.approx(0.5 + 0.9 * 3.2)
+    # without the entropy backup V(s') is min Q alone: y_0 = 1 + 0.9 * 1.5, y_1 (truncated) = 0.5 + 0.9 * 3
+    bare = critic_targets(target, trunc, policy, 0.1, 0.9, backup_entropy=False)
+    assert bare[0].tolist() == pytest.approx([1 + 0.9 * 1.5, 0.5 + 0.9 * 3.0])
 
 
 def _n_step_loop(rewards, terminated, mask, soft_v, gamma, n):
@@ -214,6 +217,18 @@ def test_return_bound_raises_only_targets_below_the_observed_return():
         sac = RecurrentSAC(TinyActor(C * H * W), TinyCritic(C * H * W), SacSettings(return_bound=bound))
         losses.append(sac.update(batch)["target_q"])
     assert losses[1] > losses[0]
+
+
+def test_backup_entropy_setting_reaches_the_update():
+    # same seed, same batch: a fresh policy's entropy bonus (-alpha log pi > 0 at its wide start)
+    # raises the targets with the backup and is absent without it
+    targets = []
+    for backup in (True, False):
+        torch.manual_seed(0)
+        settings = SacSettings(backup_entropy=backup)
+        sac = RecurrentSAC(TinyActor(C * H * W), TinyCritic(C * H * W), settings)
+        targets.append(sac.update(success_at_step_3())["target_q"])
+    assert targets[0] > targets[1]
 
 
 def test_alpha_loss_pushes_toward_target_entropy():

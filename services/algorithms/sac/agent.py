@@ -250,7 +250,9 @@ class RecurrentSAC:
         )
         with torch.no_grad():
             target_feats = self.critic_target.features_of(batch)
-        targets = critic_targets(self.critic_target, batch, policy, alpha, s.gamma, s.n_step, target_feats)
+        targets = critic_targets(
+            self.critic_target, batch, policy, alpha, s.gamma, s.n_step, target_feats, s.backup_entropy
+        )
         if s.return_bound:
             targets = bounded_targets(targets, batch, s.gamma)
         values = None

@@ -14,9 +14,9 @@ class SacSettings:
     gamma: float = 0.9
     """Discount (Equi-RSAC: 0.9)."""
     tau: float = 0.005
-    """Soft-update rate of the target critic."""
+    """Target critic's soft-update rate."""
     lr: float = 3e-4
-    """Adam learning rate of actor and critic."""
+    """Actor and critic Adam learning rate."""
     alpha_lr: float = 1e-3
     """Adam learning rate of log alpha."""
     init_alpha: float = 0.1
@@ -31,13 +31,18 @@ class SacSettings:
     alpha_loss: str = "alpha"
     """Temperature loss: -c (log pi + target), c alpha or log_alpha."""
     bc_weight: float = 0.0
-    """Weight of a BC term in the actor loss (0: off)."""
+    """BC term's weight in the actor loss (0: off)."""
     n_step: int = 1
-    """n of the n-step critic targets (1: Equi-RSAC)."""
+    """n of n-step critic targets (1: Equi-RSAC)."""
     return_bound: bool = False
-    """Critic targets no lower than the observed return-to-go."""
+    """Critic targets at least the observed return-to-go."""
+    # with a task that ends on success, the soft value's entropy bonus (about alpha H / (1 - gamma) for
+    # going on) can outweigh the success reward while alpha is high, and the policy first learns to
+    # avoid the goal; SERL's pixel agents leave it out of the targets for that reason
+    backup_entropy: bool = True
+    """Entropy bonus in the critic targets."""
     share_encoder: bool = False
-    """The actor reads the critic's image encoder (detached)."""
+    """The actor reads the critic's encoder (detached)."""
     bc_filter: bool = False
     """Clone only demo actions the critic prefers."""
     bc_decay_updates: int = 0
@@ -48,7 +53,7 @@ class SacSettings:
     actor_objective: str = "sac"
     """Actor loss: sac (Q's action gradient) or crr."""
     crr_beta: float = 0.0
-    """crr weights: 0 binary (A > 0), else exp(A / beta) capped at 20."""
+    """crr: 0 keeps A > 0, else weighs exp(A / beta) <= 20."""
     # critic warm-up: BC (where on) still trains the actor meanwhile
     actor_warmup_updates: int = 0
     """Updates before the actor term and alpha move."""

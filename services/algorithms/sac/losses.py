@@ -212,13 +212,16 @@ def returns_to_go(rewards: Tensor, mask: Tensor, gamma: float) -> Tensor:
 
 def critic_targets(
     critic_target: nn.Module, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float, gamma: float,
-    n_step: int = 1, feats: Tensor | None = None,
+    n_step: int = 1, feats: Tensor | None = None, backup_entropy: bool = True,
 ) -> Tensor:  # fmt: skip
-    """y_t (B, L), without gradient. ``feats``: the target critic's features of the batch, if computed."""
+    """y_t (B, L), without gradient. ``feats``: the target critic's features of the batch, if computed;
+    ``backup_entropy`` False: V(s') is min Q alone, without the entropy bonus -alpha log pi."""
     with torch.no_grad():
         feats = critic_target.features_of(batch) if feats is None else feats
         q1, q2 = critic_target.q(feats[:, 1:], policy.actions[:, 1:].detach())
-        soft_v = torch.min(q1, q2) - alpha * policy.log_probs[:, 1:].detach()
+        soft_v = torch.min(q1, q2)
+        if backup_entropy:
+            soft_v = soft_v - alpha * policy.log_probs[:, 1:].detach()
         return n_step_targets(batch.rewards, batch.terminated, batch.mask, soft_v, gamma, n_step)
 
 
