@@ -153,8 +153,8 @@ class ReachBenchConfig:
 
 
 def net_config(cfg: ReachBenchConfig) -> NetConfig:
-    """Small widths: for the state a 1 x 1 "image" of four channels, so the encoder is an MLP on the
-    coordinates; for the image two stride-2 convolutions."""
+    """Small widths: for the state a 1 x 1 "image" of its four coordinates (and the goal-shown flag
+    with ``goal_steps``), so the encoder is an MLP on them; for the image two stride-2 convolutions."""
     common = dict(image_embed=64, action_embed=16, q_action_embed=64, lstm_hidden=64, mlp_hidden=(64, 64),
                   actor_prev_action=cfg.actor_prev_action)  # fmt: skip
     if cfg.observation == "state":
@@ -281,9 +281,9 @@ def heading(s: rt.ReachState, action: np.ndarray) -> float:
 
 def evaluate_headings(runtime: ActorRuntime, cfg: ReachBenchConfig) -> dict[str, float]:
     """``evaluate``'s success, and the mean heading (``heading``) of the first move and of the next
-    ``LATER_MOVES`` (every start needs them: they never end at the goal or rest on a wall): with the
-    goal hidden after the first step, a policy that sees it but cannot carry it scores high on the
-    first and low on the next."""
+    ``LATER_MOVES`` (every start needs them, so no episode ends before them): with the goal hidden
+    after the first step, a policy that sees it but cannot carry it scores high on the first and low
+    on the next."""
     wins, first, later = 0, [], []
     for i in range(cfg.eval_goals):
         start = rt.draw_start(np.random.default_rng(EVAL_SEED_BASE + i))
