@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -87,9 +88,16 @@ def main(argv: Sequence[str]) -> int:
     module_name, cls_name, text = BENCHES[name]
     module = importlib.import_module(module_name)
     cfg = config.cli(getattr(module, cls_name), args[1:], f"mea bench {name}", text)
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # a kill stops the bench's children as Ctrl-C does
     try:
         module.run(cfg)
     except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback (runs it started resume on a rerun)
         print(f"mea bench {name}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+def _interrupt(signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")

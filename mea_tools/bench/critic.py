@@ -6,7 +6,9 @@ critic's value of the recorded action beside the same move turned a quarter, rev
 random actions and the policy's mean, step by step back from the episode's end and from its start
 (``services.algorithms.sac.critic_profile``). With ``--handover N`` it also plays the policy in the
 simulator from the first N recorded demonstrations' own states, k steps before their end, beside
-the critic's value of the policy's action there (``mea_tools.bench.handover``); with ``--behaviour N``
+the critic's value of the policy's action there (``mea_tools.bench.handover``), and with
+``--handover-moves`` the demonstrated move and its reverse played there before the policy, beside
+the critic's values of the two; with ``--behaviour N``
 it plays the policy from the evaluator's first N held-out starts and sums up what the fingers and
 objects did (``mea_tools.bench.behaviour``). Nothing is written; the run may be training."""
 
@@ -17,7 +19,7 @@ import functools
 import json
 import math
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,11 +34,12 @@ from services.algorithms.replay import SequenceReplay
 from services.algorithms.sac.algorithm import SacConfig
 from services.algorithms.sac.config import SacSettings
 from services.algorithms.sac.critic_profile import COLUMNS, StepProfile, step_profile
+from services.algorithms.sac.losses import reversed_move
 from services.common.config import refuse
 from services.learner import checkpoint
 
 if TYPE_CHECKING:
-    from mea_tools.bench.handover import RecordedDemo
+    from mea_tools.bench.handover import Handover, RecordedDemo
     from services.tasks import EnvSettings
 
 PROG = "mea bench critic"
@@ -65,6 +68,8 @@ class CriticBenchConfig:
     """Play the policy from the first this many recorded demonstrations' own states (0: off)."""
     handover_steps: tuple[int, ...] = (1, 2, 4, 8)
     """Steps before each demonstration's end at which the policy takes over."""
+    handover_moves: bool = False
+    """With --handover: also play the demo's own action, and that move reversed, before the policy."""
     behaviour: int = 0
     """Held-out starts from which the policy plays, to sum up what it did (0: off)."""
     json: bool = False
@@ -77,6 +82,8 @@ class CriticBenchConfig:
             raise ValueError("--steps, --episodes, --random-actions, --batch and --threads must be >= 1")
         if self.handover < 0:
             raise ValueError(f"--handover must be >= 0, got {self.handover}")
+        if self.handover_moves and not self.handover:
+            raise ValueError("--handover-moves plays from the demonstrations' states: give --handover N too")
         if self.behaviour < 0:
             raise ValueError(f"--behaviour must be >= 0, got {self.behaviour}")
         if not self.handover_steps or min(self.handover_steps) < 1:
@@ -237,7 +244,7 @@ def _handover(
     cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceReplay, inputs: _SimInputs
 ) -> dict[str, Any]:
     """The handover plays beside the critic's Q of the policy's mean on the same demonstrations."""
-    from mea_tools.bench.handover import handover_table, play_handover, summarize
+    from mea_tools.bench.handover import handover_table, move_rows, move_table, play_handover, summarize
 
     demos = inputs.demos
     # the critic's side: the same original episodes as they sit in the replay (an evicted one is not)
@@ -249,9 +256,12 @@ def _handover(
         prof = step_profile(agent.actor, agent.critic_target, batches, steps=max(cfg.handover_steps),
                             from_end=True, random_actions=1)  # fmt: skip
         critic = {k: float(v) for k, v in zip(prof.steps, prof.values["policy_mean"], strict=True)}
+        moves_critic = {col: dict(zip(prof.steps, prof.values[col].tolist(), strict=True))
+                        for col in ("recorded", "reversed")}  # fmt: skip
     with _policy_in_simulator(algo, agent, inputs) as (env, runtime, observe):
         replays = [play_handover(env, runtime, observe, d, 0) for d in demos]
         plays = {k: [play_handover(env, runtime, observe, d, k) for d in demos] for k in cfg.handover_steps}
+        moves = _move_plays(cfg.handover_steps, demos, env, runtime, observe) if cfg.handover_moves else None
     reproduced = sum(p.success and p.policy_steps == 0 for p in replays)
     summaries = {k: summarize(plays[k], algo.sac.gamma) for k in cfg.handover_steps}
     note = f"{reproduced} of {len(demos)} demonstrations reproduced their success when replayed whole"
@@ -260,9 +270,34 @@ def _handover(
     if not cfg.json:
         print(handover_table(cfg.handover_steps, summaries, critic, note) + "\n")
     plays_json = {str(k): _summary_json(summaries[k]) for k in cfg.handover_steps}
-    return {"demos": len(demos), "in_replay": int(slots.size), "reproduced": reproduced,
-            "steps": list(cfg.handover_steps), "plays": plays_json,
-            "critic_policy_mean": [_num(critic.get(k, math.nan)) for k in cfg.handover_steps]}  # fmt: skip
+    out = {"demos": len(demos), "in_replay": int(slots.size), "reproduced": reproduced,
+           "steps": list(cfg.handover_steps), "plays": plays_json,
+           "critic_policy_mean": [_num(critic.get(k, math.nan)) for k in cfg.handover_steps]}  # fmt: skip
+    if moves is not None:
+        rows = move_rows(cfg.handover_steps, moves, moves_critic if slots.size else {}, algo.sac.gamma)
+        if not cfg.json:
+            print(move_table(rows) + "\n")
+        out["moves"] = [{key: _num(v) if isinstance(v, float) else v for key, v in r.items()} for r in rows]
+    return out
+
+
+def _move_plays(
+    backs: Sequence[int], demos: Sequence[RecordedDemo], env, runtime, observe: Callable
+) -> dict[str, dict[int, list[Handover]]]:
+    """Per column (``recorded``, ``reversed``) and k, the plays that execute the demo's own action k
+    steps before its end, or that move reversed, then the policy (demos shorter than k left out)."""
+    from mea_tools.bench.handover import play_handover
+
+    out: dict[str, dict[int, list[Handover]]] = {"recorded": {}, "reversed": {}}
+    for k in backs:
+        long_enough = [d for d in demos if len(d.actions) >= k]
+        for col in out:
+            out[col][k] = []
+            for d in long_enough:
+                a = d.actions[len(d.actions) - k]
+                first = a if col == "recorded" else reversed_move(torch.tensor(a)).numpy()
+                out[col][k].append(play_handover(env, runtime, observe, d, k, first=first))
+    return out
 
 
 def _behaviour(cfg: CriticBenchConfig, algo: SacConfig, agent, inputs: _SimInputs) -> dict[str, Any]:

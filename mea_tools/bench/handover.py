@@ -53,13 +53,17 @@ def recorded_demos(run: Path, limit: int) -> list[RecordedDemo]:
     return list(found.values())
 
 
-def play_handover(env, runtime, observe: Callable, demo: RecordedDemo, back: int) -> Handover:
+def play_handover(
+    env, runtime, observe: Callable, demo: RecordedDemo, back: int, first: np.ndarray | None = None
+) -> Handover:
     """Reset ``env`` to the demo's seed and ``runtime`` afresh; for the first ``len - back`` steps the
     demo's action is executed (the runtime still reads each observation and is told the executed
     action, so its recurrent state is the one it would have had), then the runtime's own action
     until the episode ends. ``observe(obs)`` gives the runtime's input. ``back`` >= the demo's
     length hands over at the first step; 0 replays the whole demo (a check that the simulator
-    reproduces it)."""
+    reproduces it). ``first``, if given, is executed in place of the runtime's action at the
+    handover step and counts as the policy part's first step: the play then measures Q of that
+    action under the policy, the quantity the critic's Q(h, first) estimates."""
     replayed = max(0, len(demo.actions) - back)
     obs = env.reset(demo.seed)
     runtime.reset()
@@ -68,6 +72,9 @@ def play_handover(env, runtime, observe: Callable, demo: RecordedDemo, back: int
         action = runtime.act(observe(obs))
         if steps < replayed:
             action = demo.actions[steps]
+            runtime.executed(action)
+        elif steps == replayed and first is not None:
+            action = np.asarray(first, np.float32)
             runtime.executed(action)
         obs, _reward, terminated, truncated, _info = env.step(action)
         steps += 1
@@ -108,4 +115,52 @@ def handover_table(
     return "\n".join(lines)
 
 
-__all__ = ["Handover", "RecordedDemo", "handover_table", "play_handover", "recorded_demos", "summarize"]
+def move_rows(
+    backs: Sequence[int],
+    plays: dict[str, dict[int, list[Handover]]],
+    critic: dict[str, dict[int, float]],
+    gamma: float,
+) -> list[dict[str, float | int]]:
+    """Per k, what the demo's own action and the same move reversed are worth when the policy follows
+    (``plays[col][k]``, col in ``recorded``/``reversed``) beside the critic's min-Q of each action at
+    that step (``critic[col][k]``; NaN where it has none): the critic's slope between a move and its
+    reverse against the one the simulator gives under the same policy."""
+    rows: list[dict[str, float | int]] = []
+    nan = float("nan")
+    for k in backs:
+        rec, rev = (summarize(plays[col][k], gamma) for col in ("recorded", "reversed"))
+        q_rec, q_rev = (critic.get(col, {}).get(k, nan) for col in ("recorded", "reversed"))
+        rows.append({
+            "k": k, "episodes": rec["episodes"],
+            "successes_recorded": rec["successes"], "successes_reversed": rev["successes"],
+            "return_recorded": rec["mean_return"], "return_reversed": rev["mean_return"],
+            "return_gap": rec["mean_return"] - rev["mean_return"],
+            "critic_recorded": q_rec, "critic_reversed": q_rev, "critic_gap": q_rec - q_rev,
+        })  # fmt: skip
+    return rows
+
+
+def move_table(rows: Sequence[dict[str, float | int]]) -> str:
+    lines = [
+        "a demonstrated move and the same move reversed, k steps before the demo's end, then the policy's mean: "
+        "return = gamma^(steps-1) on a success (the true Q of the move under this policy) beside the critic's min-Q",
+        "| k | n | successes (move / reversed) | return: move | reversed | gap | critic: move | reversed | gap |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(f"| {r['k']} | {r['episodes']} | {r['successes_recorded']} / {r['successes_reversed']} | "
+                     f"{r['return_recorded']:.3f} | {r['return_reversed']:.3f} | {r['return_gap']:+.3f} | "
+                     f"{r['critic_recorded']:.3f} | {r['critic_reversed']:.3f} | {r['critic_gap']:+.3f} |")  # fmt: skip
+    return "\n".join(lines)
+
+
+__all__ = [
+    "Handover",
+    "RecordedDemo",
+    "handover_table",
+    "move_rows",
+    "move_table",
+    "play_handover",
+    "recorded_demos",
+    "summarize",
+]

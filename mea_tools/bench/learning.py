@@ -458,6 +458,54 @@ class ListenPorts:
 
 _PORTS = ListenPorts()
 
+STOP_WAIT_SECONDS = 180.0
+"""How long a `mea run` told to stop may take to write its last checkpoint before it is killed."""
+
+_LIVE: set[subprocess.Popen] = set()
+_LIVE_LOCK = threading.Lock()
+
+
+def stop_live_runs() -> None:
+    """SIGTERM every `mea run` this bench started that has not ended: the launcher's own graceful
+    stop (services stopped, last checkpoint and summary written), so that a rerun resumes them and
+    no run goes on writing its directory unattended."""
+    with _LIVE_LOCK:
+        procs = list(_LIVE)
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+
+
+def run_child(cmd: list[str], logf: Any, timeout_s: float | None, name: str) -> int:
+    """Run one `mea run` to its end and return its exit code. Past ``timeout_s`` it is stopped;
+    if this bench is interrupted while waiting (Ctrl-C, SIGTERM), it is stopped before the
+    interruption goes on, so that none outlives the bench."""
+    proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=dict(os.environ))
+    with _LIVE_LOCK:
+        _LIVE.add(proc)
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        _stop(proc)
+        _log(f"{name}: stopped after {timeout_s / 60:.0f} min")
+    except BaseException:
+        _stop(proc)
+        _log(f"{name}: stopped (the same command resumes it)")
+        raise
+    finally:
+        with _LIVE_LOCK:
+            _LIVE.discard(proc)
+    return proc.returncode
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    try:
+        proc.wait(STOP_WAIT_SECONDS)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
 
 def train(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> Path:
     run_dir = run_dir_of(cfg, variant, seed)
@@ -475,16 +523,12 @@ def train(cfg: LearningBenchConfig, variant: str, seed: int, s: Settings) -> Pat
         t0 = time.monotonic()
         run_dir.mkdir(parents=True, exist_ok=True)
         with open(run_dir / "launcher.log", "a") as logf:
-            proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=dict(os.environ))
             try:
-                proc.wait(timeout=cfg.timeout_minutes * 60 or None)
-            except subprocess.TimeoutExpired:
-                proc.terminate()
-                proc.wait(60)
-                _log(f"{run_dir.name}: stopped after {cfg.timeout_minutes} min")
-    elapsed = time.monotonic() - t0
-    _add_wall(run_dir, elapsed)
-    _log(f"{run_dir.name}: exit {proc.returncode} after {elapsed / 60:.1f} min")
+                code = run_child(cmd, logf, cfg.timeout_minutes * 60 or None, run_dir.name)
+            finally:  # an interrupted run's time counts too
+                elapsed = time.monotonic() - t0
+                _add_wall(run_dir, elapsed)
+    _log(f"{run_dir.name}: exit {code} after {elapsed / 60:.1f} min")
     return run_dir
 
 
@@ -503,7 +547,10 @@ def train_all(cfg: LearningBenchConfig, s: Settings) -> dict[str, list[Path]]:
         return {
             variant: [futures[(variant, seed)].result() for seed in s.seed_list] for variant in s.variants
         }
-    finally:  # on Ctrl-C or a failure no new run starts; those in flight end as they would alone
+    except BaseException:  # Ctrl-C, SIGTERM or a failure: the runs in flight stop too (resumable)
+        stop_live_runs()
+        raise
+    finally:  # no new run starts
         pool.shutdown(wait=True, cancel_futures=True)
 
 

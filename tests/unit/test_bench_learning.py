@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import signal
 import subprocess
+import sys
 import threading
 import time
 
@@ -514,3 +517,66 @@ def test_ctrl_c_ends_the_benchmark_in_one_line_with_status_130(tmp_path, monkeyp
     monkeypatch.setattr(learning, "run", interrupted)
     assert cli.main(["learning", "--out", str(tmp_path / "bench")]) == 130
     assert capsys.readouterr().err.strip() == "mea bench learning: interrupted"
+
+
+SLEEPER = [sys.executable, "-c", "import time; time.sleep(60)"]
+
+
+def _recording_popen(monkeypatch) -> list[subprocess.Popen]:
+    started: list[subprocess.Popen] = []
+    real = subprocess.Popen
+
+    def popen(*args, **kwargs):
+        started.append(real(*args, **kwargs))
+        return started[-1]
+
+    monkeypatch.setattr(subprocess, "Popen", popen)
+    return started
+
+
+def test_an_interrupted_bench_stops_the_run_it_was_waiting_on(tmp_path, monkeypatch):
+    started = _recording_popen(monkeypatch)
+
+    def ctrl_c(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGALRM, ctrl_c)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.5)
+        t0 = time.monotonic()
+        with open(tmp_path / "log", "w") as logf, pytest.raises(KeyboardInterrupt):
+            learning.run_child(SLEEPER, logf, None, "run")
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    (proc,) = started
+    assert proc.returncode is not None and time.monotonic() - t0 < 30  # ended, not left sleeping
+    assert not learning._LIVE
+
+
+def test_a_killed_parallel_bench_stops_every_run_in_flight(tmp_path, monkeypatch, capsys):
+    from mea_tools.bench import cli
+
+    started = _recording_popen(monkeypatch)
+    both = threading.Barrier(3, timeout=20)
+
+    def sleeping_run(cfg, variant, seed, s):
+        with open(tmp_path / f"{variant}.log", "w") as logf:
+            threading.Timer(0.2, both.wait).start()  # once this run has started
+            return learning.run_child(SLEEPER, logf, None, variant)
+
+    monkeypatch.setattr(learning, "train", sleeping_run)
+    killer = threading.Thread(
+        target=lambda: (both.wait(), time.sleep(0.5), os.kill(os.getpid(), signal.SIGTERM))
+    )
+    killer.start()
+    t0 = time.monotonic()
+    code = cli.main(["learning", "--out", str(tmp_path / "bench"), "--variants", "equiobs", "mea",
+                     "--seeds", "1", "--parallel", "2", "--json"])  # fmt: skip
+    killer.join()
+    assert code == 130 and "interrupted" in capsys.readouterr().err
+    assert len(started) == 2 and all(p.returncode is not None for p in started)
+    assert time.monotonic() - t0 < 30 and not learning._LIVE
+    assert (
+        signal.getsignal(signal.SIGTERM) is not cli._interrupt
+    )  # the handler is the bench's only while it runs

@@ -150,6 +150,8 @@ def test_the_handover_refuses_a_run_without_recorded_demonstrations(tmp_path, ca
         CriticBenchConfig(run=tmp_path, handover=2, handover_steps=(0, 4))
     with pytest.raises(ValueError, match="--handover must be >= 0"):
         CriticBenchConfig(run=tmp_path, handover=-1)
+    with pytest.raises(ValueError, match="--handover-moves .* --handover N"):
+        CriticBenchConfig(run=tmp_path, handover_moves=True)
     path = saved_run(tmp_path)
     files = {p: p.read_bytes() for p in path.rglob("*") if p.is_file()}
     with pytest.raises(SystemExit):
@@ -199,10 +201,25 @@ def test_the_handover_plays_each_recorded_demonstration_beside_its_critic(tmp_pa
     env = ReplayOnlyEnv({ep.seed: np.asarray(ep.actions, np.float32) for ep in demos}, SIZE)
     monkeypatch.setattr(services.tasks, "make_env", lambda task, settings: env)
     monkeypatch.setattr(services.episodes.rollout, "policy_input", lambda obs, observation: obs)
-    out = run(CriticBenchConfig(run=path, steps=2, handover=5, handover_steps=(1, 3), json=True))
+    cfg = CriticBenchConfig(
+        run=path, steps=2, handover=5, handover_steps=(1, 3), handover_moves=True, json=True
+    )
+    out = run(cfg)
     capsys.readouterr()
     h = out["handover"]
     assert (h["demos"], h["in_replay"], h["reproduced"], h["steps"]) == (2, 2, 2, [1, 3])
     for k in ("1", "3"):  # the policy never plays the demo's own last action: no success, return 0
         assert h["plays"][k] == {"episodes": 2, "successes": 0, "mean_policy_steps": None, "mean_return": 0.0}
     assert all(isinstance(q, float) for q in h["critic_policy_mean"])
+    # the demo's own last move succeeds at once (return 1) and its reverse never does; 3 steps back
+    # the policy takes over after either move and does not finish
+    last, earlier = h["moves"]
+    assert (last["k"], last["episodes"], last["successes_recorded"], last["successes_reversed"]) == (
+        1,
+        2,
+        2,
+        0,
+    )
+    assert (last["return_recorded"], last["return_reversed"], last["return_gap"]) == (1.0, 0.0, 1.0)
+    assert (earlier["k"], earlier["successes_recorded"], earlier["return_gap"]) == (3, 0, 0.0)
+    assert last["critic_gap"] == pytest.approx(last["critic_recorded"] - last["critic_reversed"])

@@ -8,7 +8,15 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from mea_tools.bench.handover import Handover, RecordedDemo, play_handover, recorded_demos, summarize
+from mea_tools.bench.handover import (
+    Handover,
+    RecordedDemo,
+    move_rows,
+    move_table,
+    play_handover,
+    recorded_demos,
+    summarize,
+)
 from services.common.mcap_io.recorder import McapRecorder
 from tests.helpers.learner import learner_episode
 
@@ -110,3 +118,31 @@ def test_recorded_demos_are_the_runs_first_demonstrations_once_each(tmp_path):
     np.testing.assert_array_equal(demos[1].actions, np.asarray(episodes[2].actions, np.float32))
     assert [d.seed for d in recorded_demos(tmp_path, limit=1)] == [3]
     assert recorded_demos(tmp_path / "elsewhere", limit=5) == []
+
+
+def test_a_first_action_replaces_the_policys_at_the_handover_and_counts_as_its_first_step():
+    env, policy = LineEnv(), FixedPolicy(1.0)
+    back = play_handover(
+        env, policy, lambda obs: obs, DEMO, back=1, first=np.array([-1, 0, 0, 0, 0], np.float32)
+    )
+    # x: 0 -> 1 -> 2 by the demo, 1 by the reversed move, then 2, 3 by the policy
+    assert (back.replayed, back.success, back.policy_steps) == (2, True, 3)
+    assert policy.executed_actions == [1.0, 1.0, -1.0]  # the runtime is told the move it did not choose
+    same = play_handover(LineEnv(), FixedPolicy(1.0), lambda obs: obs, DEMO, back=1, first=DEMO.actions[2])
+    assert (same.success, same.policy_steps) == (True, 1)
+
+
+def test_move_rows_set_the_returns_gap_beside_the_critics():
+    plays = {
+        "recorded": {2: [Handover(0, 1, True, 1), Handover(1, 1, True, 2)]},
+        "reversed": {2: [Handover(0, 1, True, 3), Handover(1, 1, False, 9)]},
+    }
+    (row,) = move_rows([2], plays, {"recorded": {2: 0.8}, "reversed": {2: 0.7}}, gamma=0.9)
+    assert row["episodes"] == 2 and (row["successes_recorded"], row["successes_reversed"]) == (2, 1)
+    assert row["return_recorded"] == pytest.approx((1.0 + 0.9) / 2)
+    assert row["return_reversed"] == pytest.approx(0.81 / 2)
+    assert row["return_gap"] == pytest.approx(0.95 - 0.405)
+    assert row["critic_gap"] == pytest.approx(0.1)
+    (no_critic,) = move_rows([2], plays, {}, gamma=0.9)
+    assert math.isnan(no_critic["critic_gap"])
+    assert "| 2 | 2 | 2 / 1 | 0.950 | 0.405 | +0.545 |" in move_table([row])
