@@ -251,6 +251,7 @@ def _handover(
     slot_of = dict(zip(replay.episode_ids(), replay.slots().tolist(), strict=True))
     slots = np.array([slot_of[d.episode_id] for d in demos if d.episode_id in slot_of], dtype=np.int64)
     critic: dict[int, float] = {}
+    moves_critic: dict[str, dict[int, float]] = {}
     if slots.size:
         batches = [to_batch(replay.gather(slots[i : i + cfg.batch])) for i in range(0, slots.size, cfg.batch)]
         prof = step_profile(agent.actor, agent.critic_target, batches, steps=max(cfg.handover_steps),
@@ -274,7 +275,7 @@ def _handover(
            "steps": list(cfg.handover_steps), "plays": plays_json,
            "critic_policy_mean": [_num(critic.get(k, math.nan)) for k in cfg.handover_steps]}  # fmt: skip
     if moves is not None:
-        rows = move_rows(cfg.handover_steps, moves, moves_critic if slots.size else {}, algo.sac.gamma)
+        rows = move_rows(cfg.handover_steps, moves, moves_critic, algo.sac.gamma)
         if not cfg.json:
             print(move_table(rows) + "\n")
         out["moves"] = [{key: _num(v) if isinstance(v, float) else v for key, v in r.items()} for r in rows]
