@@ -262,11 +262,6 @@ def policy_act(runtime: ActorRuntime, cfg: ReachBenchConfig):
     return act
 
 
-def evaluate(runtime: ActorRuntime, cfg: ReachBenchConfig) -> float:
-    """Deterministic success on the fixed starts (seeded like the evaluator's held-out seeds)."""
-    return evaluate_headings(runtime, cfg)["success"]
-
-
 LATER_MOVES = 2
 """Moves after the first that ``evaluate_headings`` reads: from the nearest start
 (``MIN_START_DISTANCE``) to within ``RADIUS`` takes at least three diagonal steps."""
@@ -280,7 +275,8 @@ def heading(s: rt.ReachState, action: np.ndarray) -> float:
 
 
 def evaluate_headings(runtime: ActorRuntime, cfg: ReachBenchConfig) -> dict[str, float]:
-    """``evaluate``'s success, and the mean heading (``heading``) of the first move and of the next
+    """Deterministic success on the fixed starts (seeded like the evaluator's held-out seeds), and the
+    mean heading (``heading``) of the first move and of the next
     ``LATER_MOVES`` (every start needs them, so no episode ends before them): with the goal hidden
     after the first step, a policy that sees it but cannot carry it scores high on the first and low
     on the next."""

@@ -519,10 +519,13 @@ def test_ctrl_c_ends_the_benchmark_in_one_line_with_status_130(tmp_path, monkeyp
     assert capsys.readouterr().err.strip() == "mea bench learning: interrupted"
 
 
-SLEEPER = [sys.executable, "-c", "import time; time.sleep(60)"]
+WAITER = [sys.executable, "-c", "import signal; signal.pause()"]
+"""A child that runs until a signal ends it, as a training run does."""
 
 
-def _recording_popen(monkeypatch) -> list[subprocess.Popen]:
+@pytest.fixture
+def children(monkeypatch):
+    """The processes the bench starts; any still alive at the end (a failed test) is killed."""
     started: list[subprocess.Popen] = []
     real = subprocess.Popen
 
@@ -531,52 +534,71 @@ def _recording_popen(monkeypatch) -> list[subprocess.Popen]:
         return started[-1]
 
     monkeypatch.setattr(subprocess, "Popen", popen)
-    return started
+    yield started
+    for proc in started:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
-def test_an_interrupted_bench_stops_the_run_it_was_waiting_on(tmp_path, monkeypatch):
-    started = _recording_popen(monkeypatch)
+def _when_running(n: int, then) -> threading.Thread:
+    """A thread that calls ``then`` once ``n`` children are registered as running (bounded poll)."""
+
+    def watch() -> None:
+        deadline = time.monotonic() + 20
+        while len(learning._LIVE) < n and time.monotonic() < deadline:
+            time.sleep(0.01)
+        then()
+
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_an_interrupted_bench_stops_the_run_it_was_waiting_on(tmp_path, children):
+    interrupted = threading.Event()
 
     def ctrl_c(signum, frame):
         raise KeyboardInterrupt
 
-    previous = signal.signal(signal.SIGALRM, ctrl_c)
+    previous = signal.signal(signal.SIGUSR1, ctrl_c)
     try:
-        signal.setitimer(signal.ITIMER_REAL, 0.5)
-        t0 = time.monotonic()
+        watcher = _when_running(1, lambda: (interrupted.set(), os.kill(os.getpid(), signal.SIGUSR1)))
         with open(tmp_path / "log", "w") as logf, pytest.raises(KeyboardInterrupt):
-            learning.run_child(SLEEPER, logf, None, "run")
+            learning.run_child(WAITER, logf, None, "run")
+        watcher.join()
     finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-    (proc,) = started
-    assert proc.returncode is not None and time.monotonic() - t0 < 30  # ended, not left sleeping
+        signal.signal(signal.SIGUSR1, previous)
+    (proc,) = children
+    assert interrupted.is_set() and proc.returncode is not None  # ended, not left running
     assert not learning._LIVE
 
 
-def test_a_killed_parallel_bench_stops_every_run_in_flight(tmp_path, monkeypatch, capsys):
+def test_a_killed_parallel_bench_stops_every_run_in_flight(tmp_path, monkeypatch, children, capsys):
     from mea_tools.bench import cli
 
-    started = _recording_popen(monkeypatch)
-    both = threading.Barrier(3, timeout=20)
-
-    def sleeping_run(cfg, variant, seed, s):
+    def waiting_run(cfg, variant, seed, s):
         with open(tmp_path / f"{variant}.log", "w") as logf:
-            threading.Timer(0.2, both.wait).start()  # once this run has started
-            return learning.run_child(SLEEPER, logf, None, variant)
+            return learning.run_child(WAITER, logf, None, variant)
 
-    monkeypatch.setattr(learning, "train", sleeping_run)
-    killer = threading.Thread(
-        target=lambda: (both.wait(), time.sleep(0.5), os.kill(os.getpid(), signal.SIGTERM))
-    )
-    killer.start()
-    t0 = time.monotonic()
+    rescued = threading.Event()
+
+    def rescue() -> None:  # a bench that does not stop its runs would wait on them for ever
+        rescued.set()
+        for proc in children:
+            proc.kill()
+
+    monkeypatch.setattr(learning, "train", waiting_run)
+    killer = _when_running(2, lambda: os.kill(os.getpid(), signal.SIGTERM))
+    rescuer = threading.Timer(60, rescue)
+    rescuer.start()
     code = cli.main(["learning", "--out", str(tmp_path / "bench"), "--variants", "equiobs", "mea",
                      "--seeds", "1", "--parallel", "2", "--json"])  # fmt: skip
+    rescuer.cancel()
     killer.join()
-    assert code == 130 and "interrupted" in capsys.readouterr().err
-    assert len(started) == 2 and all(p.returncode is not None for p in started)
-    assert time.monotonic() - t0 < 30 and not learning._LIVE
+    assert not rescued.is_set() and code == 130 and "interrupted" in capsys.readouterr().err
+    assert len(children) == 2 and all(p.returncode is not None for p in children)
+    assert not learning._LIVE
     assert (
         signal.getsignal(signal.SIGTERM) is not cli._interrupt
     )  # the handler is the bench's only while it runs

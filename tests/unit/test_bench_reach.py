@@ -125,7 +125,7 @@ def test_a_learner_that_imitates_the_expert_solves_the_state_task():
     sac = rb.sac_config(cfg)
     agent = sac.build(0, torch.device("cpu"))
     greedy = rb.ActorRuntime.of(agent.actor, sac.spec(), deterministic=True)
-    before = rb.evaluate(greedy, cfg)
+    before = rb.evaluate_headings(greedy, cfg)["success"]
     rng = np.random.default_rng(0)
     eps = [rb.rollout(rt.draw_start(rng), _expert, cfg) for _ in range(60)]
     opt = torch.optim.Adam(agent.actor.parameters(), lr=3e-3)
@@ -143,7 +143,7 @@ def test_a_learner_that_imitates_the_expert_solves_the_state_task():
         opt.zero_grad()
         loss.backward()
         opt.step()
-    after = rb.evaluate(greedy, cfg)
+    after = rb.evaluate_headings(greedy, cfg)["success"]
     assert before <= 0.2 and after >= 0.8, (before, after)
 
 
