@@ -4,7 +4,8 @@ Reads the run's newest learner checkpoint (networks and replay) and prints, per 
 episode (demonstrations with their copies, online successes, the latest online failures), the
 critic's value of the recorded action beside the same move turned a quarter, reversed, uniform
 random actions and the policy's mean, step by step back from the episode's end and from its start
-(``services.algorithms.sac.critic_profile``). With ``--handover N`` it also plays the policy in the
+(``services.algorithms.sac.critic_profile``); with ``--targets`` also the live critic's value of the
+recorded action and the learner's TD target for it (how far the critic lags what it is fitted to). With ``--handover N`` it also plays the policy in the
 simulator from the first N recorded demonstrations' own states, k steps before their end, beside
 the critic's value of the policy's action there (``mea_tools.bench.handover``), and with
 ``--handover-moves`` the demonstrated move and its reverse played there before the policy, beside
@@ -60,6 +61,8 @@ class CriticBenchConfig:
     """Stored episodes per kind: the first demonstrations, the latest successes and failures."""
     random_actions: int = 8
     """Uniform random actions rated per step (their mean is the ``random`` column)."""
+    targets: bool = False
+    """Also the live critic's Q of the recorded action and the learner's TD target for it (seeded)."""
     batch: int = 16
     """Episodes per forward pass."""
     threads: int = 1
@@ -120,14 +123,17 @@ def _table(kind: str, count: int, profile: StepProfile) -> str:
         "steps back from the end (1 = the last transition)" if profile.from_end else "steps from the start"
     )
     head = f"{kind}, {count} episodes, by {where}; min-Q of the action, mean per step"
-    cols = ["k" if profile.from_end else "t", "n", "reward", *COLUMNS, "rec-rand", "mean-rec"]
+    extra = [c for c in profile.values if c not in COLUMNS]  # live, target (--targets)
+    lag = ["target-live"] if {"live", "target"} <= set(extra) else []
+    cols = ["k" if profile.from_end else "t", "n", "reward", *COLUMNS, "rec-rand", "mean-rec", *extra, *lag]
     lines = [head, "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for i, step in enumerate(profile.steps):
         if not profile.counts[i]:
             continue
-        v = {c: profile.values[c][i] for c in COLUMNS}
+        v = {c: profile.values[c][i] for c in profile.values}
         cells = [str(step), str(profile.counts[i]), f"{profile.rewards[i]:.2f}", *(f"{v[c]:.3f}" for c in COLUMNS),
-                 f"{v['recorded'] - v['random']:+.3f}", f"{v['policy_mean'] - v['recorded']:+.3f}"]  # fmt: skip
+                 f"{v['recorded'] - v['random']:+.3f}", f"{v['policy_mean'] - v['recorded']:+.3f}",
+                 *(f"{v[c]:.3f}" for c in extra), *(f"{v['target'] - v['live']:+.3f}" for _ in lag)]  # fmt: skip
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -140,7 +146,7 @@ def _num(x: float) -> float | None:
 def _jsonable(profile: StepProfile) -> dict[str, Any]:
     return {"steps": list(profile.steps), "counts": profile.counts.tolist(),
             "reward": [_num(x) for x in profile.rewards],
-            **{c: [_num(x) for x in profile.values[c]] for c in COLUMNS}}  # fmt: skip
+            **{c: [_num(x) for x in v] for c, v in profile.values.items()}}  # fmt: skip
 
 
 def run(cfg: CriticBenchConfig) -> dict:
@@ -160,20 +166,10 @@ def run(cfg: CriticBenchConfig) -> dict:
         refuse(PROG, f"{path}: does not load into the learner its run describes ({type(exc).__name__})")
     out: dict[str, Any] = {"run": str(cfg.run), "checkpoint": path.name, "updates": agent.updates,
                            "alpha": float(agent.alpha), "kinds": {}}  # fmt: skip
-    for kind, where in KINDS.items():
-        slots = replay.slots(**where)
-        slots = slots[: cfg.episodes] if kind == "demos" else slots[-cfg.episodes :]
-        if not slots.size:
-            out["kinds"][kind] = {"episodes": 0}
-            continue
-        batches = [to_batch(replay.gather(slots[i : i + cfg.batch])) for i in range(0, slots.size, cfg.batch)]
-        profiles = [step_profile(agent.actor, agent.critic_target, batches, steps=cfg.steps, from_end=end,
-                                 random_actions=cfg.random_actions) for end in (True, False)]  # fmt: skip
-        out["kinds"][kind] = {"episodes": int(slots.size), "from_end": _jsonable(profiles[0]),
-                              "from_start": _jsonable(profiles[1])}  # fmt: skip
-        if not cfg.json:
-            for p in profiles:
-                print(_table(kind, int(slots.size), p) + "\n")
+    fitted = {"live": agent.critic, "targets": agent.td_targets} if cfg.targets else {}
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)  # the targets' sampled next actions: the same checkpoint, the same table
+        _profile_kinds(cfg, agent, replay, fitted, out)
     if inputs is not None and cfg.handover:
         out["handover"] = _handover(cfg, algo, agent, replay, inputs)
     if inputs is not None and cfg.behaviour:
@@ -182,10 +178,31 @@ def run(cfg: CriticBenchConfig) -> dict:
         json.dump(out, sys.stdout)
         print()
     else:
+        live = "; live: the critic itself, target: its TD target" if cfg.targets else ""
         print(
-            f"{path.name}: {agent.updates:,} updates, alpha {float(agent.alpha):.3g} (the target critic rates)"
+            f"{path.name}: {agent.updates:,} updates, alpha {float(agent.alpha):.3g} (the target critic rates{live})"
         )
     return out
+
+
+def _profile_kinds(
+    cfg: CriticBenchConfig, agent, replay: SequenceReplay, fitted: dict[str, Any], out: dict[str, Any]
+) -> None:
+    """Each kind's profiles into ``out["kinds"]`` (and printed, without ``--json``)."""
+    for kind, where in KINDS.items():
+        slots = replay.slots(**where)
+        slots = slots[: cfg.episodes] if kind == "demos" else slots[-cfg.episodes :]
+        if not slots.size:
+            out["kinds"][kind] = {"episodes": 0}
+            continue
+        batches = [to_batch(replay.gather(slots[i : i + cfg.batch])) for i in range(0, slots.size, cfg.batch)]
+        profiles = [step_profile(agent.actor, agent.critic_target, batches, steps=cfg.steps, from_end=end,
+                                 random_actions=cfg.random_actions, **fitted) for end in (True, False)]  # fmt: skip
+        out["kinds"][kind] = {"episodes": int(slots.size), "from_end": _jsonable(profiles[0]),
+                              "from_start": _jsonable(profiles[1])}  # fmt: skip
+        if not cfg.json:
+            for p in profiles:
+                print(_table(kind, int(slots.size), p) + "\n")
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from services.algorithms.batch import to_batch
-from services.algorithms.sac.critic_profile import COLUMNS, step_profile
+from services.algorithms.sac.critic_profile import COLUMNS, TARGET_COLUMNS, step_profile
 from services.common import config
 from services.common.config import ServiceConfig
 from services.learner import checkpoint
@@ -85,6 +85,27 @@ def test_the_random_column_is_seeded_and_past_the_longest_episode_nothing_is_cou
         step_profile(KnownActor(), KnownCritic(), bs, steps=0, from_end=True)
 
 
+class LiveCritic(KnownCritic):
+    """The critic the target copy trails: a quarter above it everywhere."""
+
+    def q(self, feats: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        v = actions @ W + 0.25
+        return v + 1.0, v  # the min is the second
+
+
+def test_the_live_critic_and_the_targets_are_columns_beside_the_target_critics():
+    bs = batches()
+    plain = step_profile(KnownActor(), KnownCritic(), bs, steps=5, from_end=True)
+    assert set(plain.values) == set(COLUMNS)
+    p = step_profile(KnownActor(), KnownCritic(), bs, steps=5, from_end=True, live=LiveCritic(),
+                     targets=lambda b: 2 * b.rewards + 1)  # fmt: skip
+    assert set(p.values) == set(COLUMNS) | set(TARGET_COLUMNS)
+    np.testing.assert_allclose(p.values["live"], p.values["recorded"] + 0.25, rtol=1e-5)
+    np.testing.assert_allclose(p.values["target"], 2 * p.rewards + 1, rtol=1e-5)
+    for c in COLUMNS:
+        np.testing.assert_array_equal(p.values[c], plain.values[c])
+
+
 def saved_run(tmp_path: Path) -> Path:
     """A run directory holding a tiny learner's settings and one checkpoint of its trainer."""
     run = tmp_path / "run"
@@ -112,6 +133,27 @@ def test_the_bench_profiles_each_kind_of_stored_episode(tmp_path, capsys):
     assert demos["steps"] == [1, 2, 3] and demos["counts"] == [2, 2, 2]
     assert set(COLUMNS) <= set(demos) and all(isinstance(v, float) for v in demos["recorded"])
     assert (out["updates"], out["checkpoint"]) == (1, "learner-000001.pt")
+
+
+def test_the_benchs_targets_end_at_the_reward_of_a_terminal_step_and_repeat(tmp_path, capsys):
+    from mea_tools.bench.critic import CriticBenchConfig, run
+
+    path = saved_run(tmp_path)
+    cfg = CriticBenchConfig(run=path, steps=3, targets=True, json=True)
+    first, again = run(cfg), run(cfg)
+    capsys.readouterr()
+    assert first["kinds"] == again["kinds"]  # the targets' sampled next actions are seeded
+    for kind in first["kinds"].values():
+        if not kind["episodes"]:
+            continue
+        end = kind["from_end"]
+        assert set(TARGET_COLUMNS) <= set(end) and all(isinstance(v, float) for v in end["live"])
+        # every stored episode ends terminated: its last target is its reward, with no bootstrap
+        assert end["target"][0] == pytest.approx(end["reward"][0], abs=1e-5)
+        assert end["target"][1] != pytest.approx(end["reward"][1], abs=1e-5)  # bootstrapped
+    run(CriticBenchConfig(run=path, steps=2, targets=True))
+    printed = capsys.readouterr().out
+    assert "| live | target | target-live |" in printed and "target: its TD target" in printed
 
 
 def test_the_bench_refuses_in_one_line_and_writes_nothing(tmp_path, capsys):

@@ -141,6 +141,12 @@ class RecurrentSAC:
     def alpha(self) -> Tensor:
         return self.log_alpha.detach().exp()
 
+    @torch.no_grad()
+    def td_targets(self, batch: Batch) -> Tensor:
+        """y (B, L): the targets an update would regress the critic onto for ``batch`` now (the
+        policy's sampled next actions, the current alpha, the return bound where on). Read only."""
+        return self._forward(batch, self.alpha).targets
+
     def policy_tensors(self) -> dict[str, np.ndarray]:
         """What actors run, on the CPU: the actor's parameters and buffers."""
         return actor_tensors(self.actor)
