@@ -71,7 +71,7 @@ class NetConfig:
     critic_input: str = "image"
     """Critic input: image or state (sim only)."""
     state_critic_hidden: tuple[int, ...] = (256, 256)
-    """Widths of the state critic's Q MLPs."""
+    """The state critic's Q MLP widths."""
     xy_range: str = "box"
     """(dx, dy): box (tanh per axis) or disc (radial)."""
     kernel_basis: str = "free"

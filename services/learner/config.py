@@ -78,15 +78,15 @@ class LearnerConfig:
     algorithm: AlgorithmSettings = field(default_factory=SacConfig)
     """The algorithm and its settings (SacConfig or GasV2Config)."""
     replay_capacity: int = 100_000
-    """Transitions the replay holds (demos never evicted)."""
+    """Replay size in transitions (demos kept)."""
     batch_size: int = 32
     """Episodes (SAC) or windows (gasv2) per update."""
     demo_fraction: float = 0.0
     """Share of each batch from the demos (0: uniform)."""
     successes_as_demos: bool = False
-    """Successful episodes join the demonstration set."""
+    """Successes join the demo set."""
     seq_len: int = 50
-    """Longest episode stored (the task's time limit)."""
+    """Longest episode stored (the time limit)."""
     samples_per_insert: float = 1.0
     """Updates per raw env step (Equi-RSAC: 1)."""
     min_steps: int = 100
@@ -96,7 +96,7 @@ class LearnerConfig:
     publish_every: int = 10
     """Announce new weights every this many updates."""
     checkpoint_minutes: float = 10.0
-    """Checkpoint period (and on shutdown); 0: off."""
+    """Checkpoint period, minutes (0: off)."""
     checkpoint_every: int = 0
     """Also checkpoint every this many updates (0: off)."""
     keep_checkpoints: int = 3
@@ -110,7 +110,7 @@ class LearnerConfig:
     resume: bool = False
     """Continue from run_dir/checkpoints if any."""
     init_actor: Path | None = None
-    """Start the actor from these weights (no checkpoint)."""
+    """The actor's starting weights (no checkpoint)."""
     max_updates: int = 0
     """Stop after this many updates (0: until stopped)."""
     max_env_steps: int = 0

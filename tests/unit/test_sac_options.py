@@ -21,6 +21,7 @@ from services.algorithms.sac.losses import (
     Batch,
     actor_loss,
     bc_loss,
+    conservative_gap,
     critic_loss,
     critic_targets,
     policy_outputs,
@@ -258,6 +259,69 @@ def test_critic_with_layer_norm_keeps_q_invariant(group):
 def test_bad_settings_are_refused():
     with pytest.raises(ValueError, match="bc_weight"):
         SacSettings(bc_weight=-1.0)
+    with pytest.raises(ValueError, match="conservative_weight must be >= 0"):
+        SacSettings(conservative_weight=-0.5)
+
+
+class ActionCritic(torch.nn.Module):
+    """Twin Q = a . w (+ 0.5 on the second): values known for any action, features ignored."""
+
+    def __init__(self, w: torch.Tensor) -> None:
+        super().__init__()
+        self.w = torch.nn.Parameter(w.clone())
+
+    def q(self, feats: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        v = actions @ self.w
+        return v, v + 0.5
+
+
+def test_the_conservative_gap_is_logsumexp_of_untried_actions_less_the_tried_ones_value():
+    batch = to_batch(replay_with([4, 6], demos=1).sample(2, np.random.default_rng(3), trim=True))
+    B, L, A = batch.actions.shape
+    feats = torch.zeros(B, L + 1, 1)
+    policy = torch.full((B, L, A), 0.25)
+    flat = ActionCritic(torch.zeros(A))  # every action worth the same: nothing to push
+    assert conservative_gap(flat, feats, batch, policy, 4).item() == pytest.approx(0.0, abs=1e-6)
+    w = torch.tensor([0.0, 1.0, 0.0, -1.0, 0.0])
+    torch.manual_seed(7)
+    got = conservative_gap(ActionCritic(w), feats, batch, policy, 3)
+    torch.manual_seed(7)  # the same uniform draws, by hand
+    draws = [torch.rand_like(batch.actions) * 2 - 1 for _ in range(3)]
+    values = torch.stack([x @ w for x in (*draws, policy)])  # (4, B, L); the twins differ by a constant
+    per_step = torch.logsumexp(values, 0) - np.log(4) - batch.actions @ w
+    m = batch.mask.float()
+    torch.testing.assert_close(got, 2 * (per_step * m).sum() / m.sum())
+
+
+def test_descending_the_conservative_gap_ranks_the_tried_action_above_the_others():
+    batch = to_batch(replay_with([4, 6], demos=1).sample(2, np.random.default_rng(4), trim=True))
+    B, L, A = batch.actions.shape
+    feats, policy = torch.zeros(B, L + 1, 1), torch.zeros(B, L, A)
+    critic = ActionCritic(torch.zeros(A))
+    opt = torch.optim.SGD(critic.parameters(), lr=0.5)
+    torch.manual_seed(0)
+    for _ in range(20):
+        opt.zero_grad()
+        conservative_gap(critic, feats, batch, policy, 4).backward()
+        opt.step()
+    m = batch.mask.bool()
+    tried = (batch.actions @ critic.w.detach())[m]
+    untried = (torch.rand(64, B, L, A) * 2 - 1) @ critic.w.detach()
+    assert float(tried.mean()) > float(untried[:, m].mean()) + 0.5
+
+
+def test_the_conservative_term_is_reported_and_moves_the_critic_only_when_on():
+    batch = to_batch(replay_with([4, 6], demos=1).sample(3, np.random.default_rng(9), trim=True))
+    runs = {}
+    for w in (0.0, 1.0):
+        actor, critic, _ = nets()
+        sac = RecurrentSAC(actor, critic, SacSettings(conservative_weight=w))
+        torch.manual_seed(2)
+        info = sac.update(batch)
+        runs[w] = (info, [p.detach().clone() for p in sac.critic.parameters()])
+    assert "conservative_gap" not in runs[0.0][0] and np.isfinite(runs[1.0][0]["conservative_gap"])
+    assert runs[0.0][0]["critic_loss"] == pytest.approx(runs[1.0][0]["critic_loss"])  # the TD part alone
+    assert any(not torch.equal(a, b) for a, b in zip(runs[0.0][1], runs[1.0][1], strict=True))
 
 
 @torch.no_grad()

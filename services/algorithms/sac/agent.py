@@ -22,6 +22,7 @@ from services.algorithms.networks import disc_xy
 from services.algorithms.sac.config import SacSettings
 from services.algorithms.sac.graphed import GraphedUpdate
 from services.algorithms.sac.losses import (
+    CONSERVATIVE_ACTIONS,
     ActionValues,
     Batch,
     DemoCritique,
@@ -31,6 +32,7 @@ from services.algorithms.sac.losses import (
     alpha_loss,
     bc_loss,
     bounded_targets,
+    conservative_gap,
     critic_loss,
     critic_targets,
     critique_demos,
@@ -187,12 +189,19 @@ class RecurrentSAC:
         # losses: J_Q, and J_bc (where on) with its gradient on the actor, taken while the graph it
         # shares with J_Q through a shared encoder is whole
         q_loss, feats, q_info = critic_loss(self.critic, batch, fwd.targets, fwd.feats)
+        cql = None  # the TD loss alone is reported as critic_loss
+        c_loss = q_loss
+        if s.conservative_weight > 0:
+            cql = conservative_gap(
+                self.critic, feats, batch, fwd.policy.actions[:, :-1], CONSERVATIVE_ACTIONS
+            )
+            c_loss = q_loss + s.conservative_weight * cql
         b_loss = self._bc_loss(batch, fwd) if w > 0 else None
         bc_grads: Grads = () if b_loss is None else _grads(w * b_loss, self._actor_params, retain=True)
 
         # critic step: J_Q, plus w J_bc where the BC term reaches a shared encoder
         trains_encoder = b_loss is not None and fwd.embedding is not None
-        _step(self.critic_opt, q_loss + w * b_loss if trains_encoder else q_loss, self._critic_params)
+        _step(self.critic_opt, c_loss + w * b_loss if trains_encoder else c_loss, self._critic_params)
 
         # actor step: J_pi through the just-updated Q heads, plus the BC gradient; during a critic
         # warm-up the BC gradient alone (J_pi's gradient still measured)
@@ -227,6 +236,8 @@ class RecurrentSAC:
         }
         if crr:
             out["crr_keep"] = masked_mean(weights, batch.mask)
+        if cql is not None:
+            out["conservative_gap"] = cql.detach()
         if fwd.critique is not None:
             c = fwd.critique
             out |= {

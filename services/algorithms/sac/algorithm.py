@@ -42,7 +42,7 @@ class SacConfig:
     observation: str = "voxel"
     """Policy images: voxel (EquiObs/MEA) or depth."""
     trim_batches: bool = True
-    """Pad batches to their longest episode, not seq_len."""
+    """Pad batches to their longest episode."""
     cuda_graphs: bool = False
     """Each update as a CUDA graph replay (CUDA only)."""
 

@@ -35,18 +35,22 @@ class SacSettings:
     n_step: int = 1
     """n of n-step critic targets (1: Equi-RSAC)."""
     return_bound: bool = False
-    """Critic targets at least the observed return-to-go."""
+    """Targets >= the observed return-to-go."""
     # with a task that ends on success, the soft value's entropy bonus (about alpha H / (1 - gamma) for
     # going on) can outweigh the success reward while alpha is high, and the policy first learns to
     # avoid the goal; SERL's pixel agents leave it out of the targets for that reason
     backup_entropy: bool = True
     """Entropy bonus in the critic targets."""
     share_encoder: bool = False
-    """The actor reads the critic's encoder (detached)."""
+    """Actor reads the critic's encoder."""
     bc_filter: bool = False
     """Clone only demo actions the critic prefers."""
     bc_decay_updates: int = 0
     """Decay bc_weight to 0 over these updates (0: off)."""
+    # CQL's term (Kumar et al. 2020) in the critic loss: an actor released from a clone climbs the
+    # critic into actions near the clone's that no episode tried, where its values are guesses
+    conservative_weight: float = 0.0
+    """CQL term's weight in the critic loss (0: off)."""
     # crr (Wang et al. 2020): the weighted likelihood of replayed actions the critic rates above the
     # policy's own mean action, so the actor never follows the critic's gradient into actions that
     # no episode tried; crr_beta 0 keeps an action where its advantage is > 0, else weighs exp(A / beta)
@@ -77,6 +81,8 @@ class SacSettings:
             )
         if self.alpha_loss not in ALPHA_LOSSES:
             raise ValueError(f"alpha_loss must be one of {ALPHA_LOSSES}, not {self.alpha_loss!r}")
+        if self.conservative_weight < 0:
+            raise ValueError(f"conservative_weight must be >= 0, got {self.conservative_weight}")
         if self.crr_beta < 0:
             raise ValueError(f"crr_beta must be >= 0, got {self.crr_beta}")
         if self.actor_warmup_updates < 0:

@@ -243,6 +243,29 @@ def critic_loss(
     return loss, feats, info
 
 
+CONSERVATIVE_ACTIONS = 4
+"""Uniform random actions per transition in the conservative term, beside the policy's sample."""
+
+
+def conservative_gap(
+    critic: nn.Module, feats: Tensor, batch: Batch, policy_actions: Tensor, random_actions: int
+) -> Tensor:
+    """CQL's term (Kumar et al. 2020), summed over the twin Q: the masked mean of logsumexp over
+    ``random_actions`` uniform actions and the policy's sampled one, less log of their count, minus
+    Q of the replayed action. Descending it lowers the values of actions no episode tried relative
+    to the one tried, so an actor cannot climb the critic into them. Without CQL's importance
+    weights (the sampled set is small, and a Q in [0, 1] keeps the softmax close to uniform).
+    ``feats``: the critic's features (L+1 steps, with gradients); ``policy_actions`` (B, L, A)."""
+    h = feats[:, :-1]
+    a = batch.actions
+    draws = [torch.rand_like(a) * 2 - 1 for _ in range(random_actions)]
+    tried = critic.q(h, a)
+    others = [critic.q(h, x) for x in (*draws, policy_actions.detach())]
+    log_n = math.log(random_actions + 1)
+    gap = sum(torch.logsumexp(torch.stack([o[i] for o in others]), 0) - log_n - tried[i] for i in range(2))
+    return masked_mean(gap, batch.mask)
+
+
 def actor_loss(
     critic: nn.Module, critic_features: Tensor, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float
 ) -> Tensor:
