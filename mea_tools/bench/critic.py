@@ -4,14 +4,15 @@ Reads the run's newest learner checkpoint (networks and replay) and prints, per 
 episode (demonstrations with their copies, online successes, the latest online failures), the
 critic's value of the recorded action beside the same move turned a quarter, reversed, uniform
 random actions and the policy's mean, step by step back from the episode's end and from its start
-(``services.algorithms.sac.critic_profile``); with ``--targets`` also the live critic's value of the
-recorded action and the learner's TD target for it (how far the critic lags what it is fitted to). With ``--handover N`` it also plays the policy in the
-simulator from the first N recorded demonstrations' own states, k steps before their end, beside
-the critic's value of the policy's action there (``mea_tools.bench.handover``), and with
-``--handover-moves`` the demonstrated move and its reverse played there before the policy, beside
-the critic's values of the two; with ``--behaviour N``
-it plays the policy from the evaluator's first N held-out starts and sums up what the fingers and
-objects did (``mea_tools.bench.behaviour``). Nothing is written; the run may be training."""
+(``services.algorithms.sac.critic_profile``); with ``--targets`` also the live critic's value of
+the recorded action and the learner's TD target for it (how far the critic is from what it is
+fitted to). With ``--handover N`` it also plays the policy in the simulator from the first N
+recorded demonstrations' own states, k steps before their end, beside the critic's value of the
+policy's action there (``mea_tools.bench.handover``), and with ``--handover-moves`` the
+demonstrated move and its reverse played there before the policy, beside the critic's values of
+the two; with ``--behaviour N`` it plays the policy from the evaluator's first N held-out starts
+and sums up what the fingers and objects did (``mea_tools.bench.behaviour``). Nothing is written;
+the run may be training."""
 
 from __future__ import annotations
 
