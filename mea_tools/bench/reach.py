@@ -276,10 +276,9 @@ def heading(s: rt.ReachState, action: np.ndarray) -> float:
 
 def evaluate_headings(runtime: ActorRuntime, cfg: ReachBenchConfig) -> dict[str, float]:
     """Deterministic success on the fixed starts (seeded like the evaluator's held-out seeds), and the
-    mean heading (``heading``) of the first move and of the next
-    ``LATER_MOVES`` (every start needs them, so no episode ends before them): with the goal hidden
-    after the first step, a policy that sees it but cannot carry it scores high on the first and low
-    on the next."""
+    mean heading (``heading``) of the first move and of the next ``LATER_MOVES`` (every start needs
+    them, so no episode ends before them): with the goal hidden after the first step, a policy that
+    sees it but cannot carry it scores high on the first and low on the next."""
     wins, first, later = 0, [], []
     for i in range(cfg.eval_goals):
         start = rt.draw_start(np.random.default_rng(EVAL_SEED_BASE + i))

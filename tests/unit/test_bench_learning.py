@@ -541,13 +541,26 @@ def children(monkeypatch):
             proc.wait()
 
 
-def _when_running(n: int, then) -> threading.Thread:
-    """A thread that calls ``then`` once ``n`` children are registered as running (bounded poll)."""
+class _Registry(set):
+    """The bench's set of live runs, telling each registration (a readiness signal to wait on)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.registered = threading.Semaphore(0)
+
+    def add(self, proc) -> None:
+        super().add(proc)
+        self.registered.release()
+
+
+def _when_running(monkeypatch, n: int, then) -> threading.Thread:
+    """A thread that calls ``then`` once ``n`` children are registered as running (or after 20 s each)."""
+    registry = _Registry()
+    monkeypatch.setattr(learning, "_LIVE", registry)
 
     def watch() -> None:
-        deadline = time.monotonic() + 20
-        while len(learning._LIVE) < n and time.monotonic() < deadline:
-            time.sleep(0.01)
+        for _ in range(n):
+            registry.registered.acquire(timeout=20)
         then()
 
     thread = threading.Thread(target=watch, daemon=True)
@@ -555,7 +568,7 @@ def _when_running(n: int, then) -> threading.Thread:
     return thread
 
 
-def test_an_interrupted_bench_stops_the_run_it_was_waiting_on(tmp_path, children):
+def test_an_interrupted_bench_stops_the_run_it_was_waiting_on(tmp_path, monkeypatch, children):
     interrupted = threading.Event()
 
     def ctrl_c(signum, frame):
@@ -563,7 +576,9 @@ def test_an_interrupted_bench_stops_the_run_it_was_waiting_on(tmp_path, children
 
     previous = signal.signal(signal.SIGUSR1, ctrl_c)
     try:
-        watcher = _when_running(1, lambda: (interrupted.set(), os.kill(os.getpid(), signal.SIGUSR1)))
+        watcher = _when_running(
+            monkeypatch, 1, lambda: (interrupted.set(), os.kill(os.getpid(), signal.SIGUSR1))
+        )
         with open(tmp_path / "log", "w") as logf, pytest.raises(KeyboardInterrupt):
             learning.run_child(WAITER, logf, None, "run")
         watcher.join()
@@ -589,7 +604,7 @@ def test_a_killed_parallel_bench_stops_every_run_in_flight(tmp_path, monkeypatch
             proc.kill()
 
     monkeypatch.setattr(learning, "train", waiting_run)
-    killer = _when_running(2, lambda: os.kill(os.getpid(), signal.SIGTERM))
+    killer = _when_running(monkeypatch, 2, lambda: os.kill(os.getpid(), signal.SIGTERM))
     rescuer = threading.Timer(60, rescue)
     rescuer.start()
     code = cli.main(["learning", "--out", str(tmp_path / "bench"), "--variants", "equiobs", "mea",
