@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -553,6 +552,12 @@ class _Registry(set):
         self.registered.release()
 
 
+def _signal_main(sig: int) -> None:
+    """``sig`` to the main thread: a signal sent to the process may land on this one, and the main
+    thread then sleeps on in its wait until something else wakes it."""
+    signal.pthread_kill(threading.main_thread().ident, sig)
+
+
 def _when_running(monkeypatch, n: int, then) -> threading.Thread:
     """A thread that calls ``then`` once ``n`` children are registered as running (or after 20 s each)."""
     registry = _Registry()
@@ -576,9 +581,7 @@ def test_an_interrupted_bench_stops_the_run_it_was_waiting_on(tmp_path, monkeypa
 
     previous = signal.signal(signal.SIGUSR1, ctrl_c)
     try:
-        watcher = _when_running(
-            monkeypatch, 1, lambda: (interrupted.set(), os.kill(os.getpid(), signal.SIGUSR1))
-        )
+        watcher = _when_running(monkeypatch, 1, lambda: (interrupted.set(), _signal_main(signal.SIGUSR1)))
         with open(tmp_path / "log", "w") as logf, pytest.raises(KeyboardInterrupt):
             learning.run_child(WAITER, logf, None, "run")
         watcher.join()
@@ -604,7 +607,7 @@ def test_a_killed_parallel_bench_stops_every_run_in_flight(tmp_path, monkeypatch
             proc.kill()
 
     monkeypatch.setattr(learning, "train", waiting_run)
-    killer = _when_running(monkeypatch, 2, lambda: os.kill(os.getpid(), signal.SIGTERM))
+    killer = _when_running(monkeypatch, 2, lambda: _signal_main(signal.SIGTERM))
     rescuer = threading.Timer(60, rescue)
     rescuer.start()
     code = cli.main(["learning", "--out", str(tmp_path / "bench"), "--variants", "equiobs", "mea",
