@@ -78,7 +78,7 @@ class LearnerConfig:
     algorithm: AlgorithmSettings = field(default_factory=SacConfig)
     """The algorithm and its settings (SacConfig or GasV2Config)."""
     replay_capacity: int = 100_000
-    """Replay size in transitions (demos kept)."""
+    """Replay size in transitions."""
     batch_size: int = 32
     """Episodes (SAC) or windows (gasv2) per update."""
     demo_fraction: float = 0.0
@@ -92,7 +92,7 @@ class LearnerConfig:
     min_steps: int = 100
     """Raw env steps in replay before the first update."""
     error_buffer: float = 200.0
-    """Slack in updates before the replay gate waits."""
+    """The replay gate's slack in updates."""
     publish_every: int = 10
     """Announce new weights every this many updates."""
     checkpoint_minutes: float = 10.0
@@ -106,7 +106,7 @@ class LearnerConfig:
     run_dir: Path = Path("runs/learner")
     """Run directory: config and checkpoints/."""
     run_id: str = ""
-    """Version lineage id; empty: from run_dir and time."""
+    """Version lineage id (empty: derived)."""
     resume: bool = False
     """Continue from run_dir/checkpoints if any."""
     init_actor: Path | None = None
@@ -128,7 +128,7 @@ class LearnerConfig:
     queue: int = 64
     """Incoming episodes buffered before ingest."""
     inbox_mb: int = 1024
-    """Inbox MiB while a checkpoint holds the replay."""
+    """Inbox MiB during checkpoints."""
     gate_seconds: float = 0.5
     """Period of the replay gate."""
     service: ServiceConfig = ServiceConfig()

@@ -263,6 +263,26 @@ def test_bad_settings_are_refused():
         SacSettings(conservative_weight=-0.5)
 
 
+@pytest.mark.parametrize("actor_lr", [None, 1e-5])
+def test_the_actor_steps_at_its_own_rate_and_the_critic_at_lr(actor_lr):
+    """Adam's first step moves each parameter with a gradient by its rate (the bias-corrected
+    g / |g|), so the largest move of each network is its rate."""
+    batch = to_batch(replay_with([5, 4], demos=1).sample(2, np.random.default_rng(1), trim=True))
+    actor, critic, _ = nets()
+    sac = RecurrentSAC(actor, critic, SacSettings(lr=1e-3, actor_lr=actor_lr))
+    before = {
+        k: [p.detach().clone() for p in m.parameters()]
+        for k, m in (("actor", sac.actor), ("critic", sac.critic))
+    }
+    sac.update(batch)
+    moved = {k: max(float((p.detach() - q).abs().max()) for p, q in zip(m.parameters(), before[k], strict=True))
+             for k, m in (("actor", sac.actor), ("critic", sac.critic))}  # fmt: skip
+    assert moved["critic"] == pytest.approx(1e-3, rel=1e-2)  # float32 rounding of the moves
+    assert moved["actor"] == pytest.approx(1e-3 if actor_lr is None else actor_lr, rel=1e-2)
+    with pytest.raises(ValueError, match="actor_lr"):
+        SacSettings(actor_lr=0.0)
+
+
 class ActionCritic(torch.nn.Module):
     """Twin Q = a . w (+ 0.5 on the second): values known for any action, features ignored."""
 

@@ -123,7 +123,7 @@ class RecurrentSAC:
         # refuses a gradient whose strides differ from its parameter's (einsum hands the mean
         # head's irrep a transposed one), which the H200 check of 2026-11-29 hit on every update.
         opt = {"capturable": True} if cuda_graphs else {}  # Adam's step count read inside the graph
-        self.actor_opt = torch.optim.Adam(self._actor_params, lr=settings.lr, **opt)
+        self.actor_opt = torch.optim.Adam(self._actor_params, lr=settings.actor_rate, **opt)
         self.critic_opt = torch.optim.Adam(self._critic_params, lr=settings.lr, **opt)
         self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=settings.alpha_lr, **opt)
         self.updates = 0

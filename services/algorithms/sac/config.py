@@ -16,7 +16,11 @@ class SacSettings:
     tau: float = 0.005
     """Target critic's soft-update rate."""
     lr: float = 3e-4
-    """Actor and critic Adam learning rate."""
+    """Critic's (and actor's) Adam rate."""
+    # Adam steps at its rate whatever the size of the critic's action gradient, so an actor started
+    # from a clone moves as fast along a critic that barely ranks actions as along one that does
+    actor_lr: float | None = None
+    """Actor's Adam rate; None: lr."""
     alpha_lr: float = 1e-3
     """Adam learning rate of log alpha."""
     init_alpha: float = 0.1
@@ -29,7 +33,7 @@ class SacSettings:
     # scales log alpha's gradient by alpha, so alpha falls about 2.5x slower per update than with
     # "log_alpha" (Stable-Baselines3), whose gradient does not depend on alpha
     alpha_loss: str = "alpha"
-    """Temperature loss: -c (log pi + target), c alpha or log_alpha."""
+    """Temperature loss's c: alpha or log_alpha."""
     bc_weight: float = 0.0
     """BC term's weight in the actor loss (0: off)."""
     n_step: int = 1
@@ -67,8 +71,8 @@ class SacSettings:
             raise ValueError(f"gamma must be in [0, 1], got {self.gamma}")
         if not 0.0 < self.tau <= 1.0:
             raise ValueError(f"tau must be in (0, 1], got {self.tau}")
-        if self.lr <= 0 or self.alpha_lr <= 0 or self.init_alpha <= 0:
-            raise ValueError("lr, alpha_lr and init_alpha must be positive")
+        if self.lr <= 0 or self.alpha_lr <= 0 or self.init_alpha <= 0 or self.actor_rate <= 0:
+            raise ValueError("lr, actor_lr, alpha_lr and init_alpha must be positive")
         if self.bc_weight < 0:
             raise ValueError(f"bc_weight must be >= 0, got {self.bc_weight}")
         if self.n_step < 1:
@@ -87,6 +91,11 @@ class SacSettings:
             raise ValueError(f"crr_beta must be >= 0, got {self.crr_beta}")
         if self.actor_warmup_updates < 0:
             raise ValueError(f"actor_warmup_updates must be >= 0, got {self.actor_warmup_updates}")
+
+    @property
+    def actor_rate(self) -> float:
+        """The actor's Adam learning rate: ``actor_lr`` where set, else ``lr``."""
+        return self.lr if self.actor_lr is None else self.actor_lr
 
     def bc_weight_at(self, updates: int) -> float:
         """The BC weight after ``updates`` updates (``bc_decay_updates``' linear decay)."""
