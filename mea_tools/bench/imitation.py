@@ -208,16 +208,18 @@ def evaluate(
     episodes: int,
     gripper_start: str = "random",
     seed_base: int = EVAL_SEED_BASE,
+    deterministic: bool = True,
 ) -> dict[str, Any]:
-    """``blob``'s deterministic policy on ``episodes`` held-out seeds from ``seed_base`` (the
-    evaluator's first by default), in the evaluator's env through its ``EpisodeRunner``."""
+    """``blob``'s deterministic policy (or, not ``deterministic``, the policy sampled as actors sample
+    it, noise seeded) on ``episodes`` held-out seeds from ``seed_base`` (the evaluator's first by
+    default), in the evaluator's env through its ``EpisodeRunner``."""
     ecfg = EvaluatorConfig(task=task, episodes=episodes, depth_image=depth_image, gripper_start=gripper_start,
                            seed_base=seed_base)  # fmt: skip
     env = make_env(task, ecfg.env_settings())
     probe = BetweenBlocks(env) if task == "block_pull" else None
     runner = EpisodeRunner(env, task, "imitation", None if probe is None else probe.step,
                            None if probe is None else probe.end)  # fmt: skip
-    runtime = PolicyRuntime(deterministic=True)
+    runtime = PolicyRuntime(deterministic=deterministic)
     runtime.load(blob)
     try:
         results = runner.episodes(runtime, ecfg.seeds)
@@ -277,7 +279,8 @@ def _write_json(path: Path, data: dict) -> None:
 
 
 def summary_rows(rows: list[dict]) -> list[dict]:
-    """Per demo count: success mean ± std (and range) over training seeds, lowered-between mean, wall time."""
+    """Per demo count: success mean ± std (and range) over training seeds, the sampled policy's mean
+    success, lowered-between mean, wall time."""
     out = []
     for n in sorted({r["demos"] for r in rows}):
         rs = [r for r in rows if r["demos"] == n]
@@ -285,6 +288,8 @@ def summary_rows(rows: list[dict]) -> list[dict]:
         row = {"demos": n, "seeds": len(rs), "success": f"{s.mean():.2f} ± {s.std():.2f}",
                "success_mean": float(s.mean()), "success_std": float(s.std()),
                "success_min": float(s.min()), "success_max": float(s.max())}  # fmt: skip
+        if "sampled_success" in rs[0]:
+            row["sampled_success_mean"] = float(np.mean([r["sampled_success"] for r in rs]))
         if rs[0].get("lowered_between") is not None:
             row["lowered_between_mean"] = float(np.mean([r["lowered_between"] for r in rs]))
         row["wall_s"] = float(sum(r["train_s"] + r["eval_s"] for r in rs))
@@ -312,10 +317,14 @@ def run(cfg: ImitationBenchConfig) -> dict:
             actor, before, after, train_s = clone(replay, learner, seed, cfg.updates, cfg.batch, tag)
             blob = clone_blob(actor, learner, f"imitation-{cfg.task}-{cfg.variant}-{tag}")
             e0 = time.perf_counter()
-            ev = evaluate(
-                blob, cfg.task, variant(cfg.variant).depth_image, cfg.eval_episodes, cfg.gripper_start
+            depth = variant(cfg.variant).depth_image
+            ev = evaluate(blob, cfg.task, depth, cfg.eval_episodes, cfg.gripper_start)
+            # as actors act it (and an online learner's critic targets sample it): its log std matters
+            sampled = evaluate(
+                blob, cfg.task, depth, cfg.eval_episodes, cfg.gripper_start, deterministic=False
             )
-            row = {"demos": n, "train_seed": seed, "success": ev["success"], "lowered_between": ev["lowered_between"],
+            row = {"demos": n, "train_seed": seed, "success": ev["success"], "sampled_success": sampled["success"],
+                   "lowered_between": ev["lowered_between"],
                    "bc_loss_start": before, "bc_loss_end": after, "updates": cfg.updates,
                    "train_s": round(train_s, 1), "eval_s": round(time.perf_counter() - e0, 1)}  # fmt: skip
             if ev["lowered_between"] is None:

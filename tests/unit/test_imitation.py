@@ -28,10 +28,12 @@ from services.algorithms.sac.losses import bc_loss
 from services.augmenter.core.pipeline import augment_episode, with_images
 from services.common.config import ServiceConfig
 from services.episodes.rollout import policy_input
+from services.episodes.scores import EpisodeResult
 from services.evaluator.config import EvaluatorConfig
 from services.plan import augmenter_config, learner_config
 from services.tasks import make_env
 
+RESULT = EpisodeResult(success=False, length=10, ret=0.0)
 ROTATIONS = 4  # rotated copies per demo: enough to exercise the copies, cheap to augment
 
 
@@ -189,3 +191,31 @@ def test_the_gripper_start_reaches_the_demos_and_the_evaluation(start, monkeypat
     with pytest.raises(BuiltError) as built:
         imitation.evaluate(None, "block_pull", False, 5, start)
     assert built.value.args[0].gripper_start == start
+
+
+def test_the_clone_is_evaluated_as_the_evaluator_acts_it_and_as_actors_sample_it(monkeypatch):
+    import mea_tools.bench.imitation as imitation
+
+    acted = []
+
+    class Runner:  # the evaluator's runner, reduced to what it was handed
+        def __init__(self, env, *args) -> None:
+            pass
+
+        def episodes(self, runtime, seeds):
+            acted.append(runtime.deterministic)
+            return [dataclasses.replace(RESULT, success=runtime.deterministic) for _ in seeds]
+
+    monkeypatch.setattr(imitation, "EpisodeRunner", Runner)
+    monkeypatch.setattr(imitation, "record_demos", lambda rc, n, expert=None: [])
+    monkeypatch.setattr(imitation, "demo_replay", lambda *a: (None, {"episodes": 0, "transitions": 0}))
+    monkeypatch.setattr(imitation, "clone", lambda *a: (torch.nn.Linear(1, 1), 0.0, 0.0, 0.0))
+    monkeypatch.setattr(imitation, "clone_blob", lambda *a: None)
+    monkeypatch.setattr(PolicyRuntime, "load", lambda self, blob: None)
+    result = imitation.run(ImitationBenchConfig(demos=(2,), train_seeds=(0,), eval_episodes=3, json=True))
+    assert acted == [True, False]  # the evaluator's deterministic policy, then the sampled one
+    (row,) = result["results"]["clones"]
+    assert (row["success"], row["sampled_success"]) == (1.0, 0.0)
+    assert (
+        result["results"]["per demo count (mean ± std over training seeds)"][0]["sampled_success_mean"] == 0.0
+    )
