@@ -52,7 +52,7 @@ class SacSettings:
     bc_decay_updates: int = 0
     """Decay bc_weight to 0 over these updates (0: off)."""
     # CQL's term (Kumar et al. 2020) in the critic loss: an actor released from a clone climbs the
-    # critic into actions near the clone's that no episode tried, where its values are guesses
+    # critic into actions near the clone's that it overrates
     conservative_weight: float = 0.0
     """CQL term's weight in the critic loss (0: off)."""
     # crr (Wang et al. 2020): the weighted likelihood of replayed actions the critic rates above the
