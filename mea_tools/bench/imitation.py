@@ -287,9 +287,8 @@ def summary_rows(rows: list[dict]) -> list[dict]:
         s = np.array([r["success"] for r in rs], float)
         row = {"demos": n, "seeds": len(rs), "success": f"{s.mean():.2f} ± {s.std():.2f}",
                "success_mean": float(s.mean()), "success_std": float(s.std()),
-               "success_min": float(s.min()), "success_max": float(s.max())}  # fmt: skip
-        if "sampled_success" in rs[0]:
-            row["sampled_success_mean"] = float(np.mean([r["sampled_success"] for r in rs]))
+               "success_min": float(s.min()), "success_max": float(s.max()),
+               "sampled_success_mean": float(np.mean([r["sampled_success"] for r in rs]))}  # fmt: skip
         if rs[0].get("lowered_between") is not None:
             row["lowered_between_mean"] = float(np.mean([r["lowered_between"] for r in rs]))
         row["wall_s"] = float(sum(r["train_s"] + r["eval_s"] for r in rs))
