@@ -49,33 +49,35 @@ class NetConfig:
     image_size: int = 84
     """H = W of the input images."""
     in_channels: int = 2
-    """Input image channels (depth + jaw opening)."""
+    """Image channels (depth + jaw opening)."""
     encoder: tuple[tuple[int, int, int], ...] = ((8, 8, 4), (16, 4, 2), (16, 3, 1), (16, 3, 1), (16, 3, 1))
-    """(fields, kernel, stride) of each conv + ReLU layer."""
+    """(fields, kernel, stride) per conv + ReLU layer."""
     final_kernel: int = 3
     """Final conv kernel (leaves a 1x1 map)."""
     image_embed: int = 128
     """Channels of the image embedding."""
     action_embed: int = 16
-    """Channels of a_{t-1}'s embedding (LSTM input)."""
+    """a_{t-1}'s embedding (LSTM input)."""
     q_action_embed: int = 144
-    """Channels of Q's action embedding (public: 144)."""
+    """Q's action embedding (public: 144)."""
     lstm_hidden: int = 128
     """Channels of h and c."""
     mlp_hidden: tuple[int, ...] = (128, 128)
-    """Hidden channels of the actor and Q MLPs."""
+    """Actor and Q MLP hidden channels."""
     actor_prev_action: bool = True
     """The actor's LSTM reads a_{t-1} (Equi-RSAC)."""
     critic_layer_norm: bool = False
     """LayerNorm in the Q MLPs (RLPD)."""
+    critic_heads: int = 2
+    """Q heads (2: twin)."""
     critic_input: str = "image"
     """Critic input: image or state (sim only)."""
     state_critic_hidden: tuple[int, ...] = (256, 256)
-    """The state critic's Q MLP widths."""
+    """State critic's MLP widths."""
     xy_range: str = "box"
     """(dx, dy): box (tanh per axis) or disc (radial)."""
     kernel_basis: str = "free"
-    """Encoder kernels: free or steerable (escnn's, c4)."""
+    """Encoder kernels: free or steerable (c4)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "encoder", tuple(tuple(int(v) for v in layer) for layer in self.encoder))
@@ -107,6 +109,8 @@ class NetConfig:
             )
         if any(w < 1 for w in self.mlp_hidden):
             raise ValueError(f"mlp_hidden must be positive, got {self.mlp_hidden}")
+        if self.critic_heads < 2:
+            raise ValueError(f"critic_heads must be >= 2, got {self.critic_heads}")
         self.spatial_sizes()  # raises on a bad grid
         G = self.channels_per_field
         if self.group != "none":
@@ -482,7 +486,8 @@ class Actor(_Recurrent):
 
 
 class Critic(_Recurrent):
-    """Twin Q over recurrent features; both Q values are invariant scalars."""
+    """``cfg.critic_heads`` Q heads (twin by default) over shared recurrent features; every Q value
+    is an invariant scalar."""
 
     def __init__(self, cfg: NetConfig) -> None:
         super().__init__(cfg)
@@ -493,8 +498,16 @@ class Critic(_Recurrent):
         width_in = self.feature_dim + cfg.q_action_embed
         out = _mlp_out(cfg, width_in)
         ln = cfg.critic_layer_norm
-        self.q1 = nn.Sequential(_mlp(cfg, self.group, width_in, ln), _invariant_head(cfg, self.group, out, 1))
-        self.q2 = nn.Sequential(_mlp(cfg, self.group, width_in, ln), _invariant_head(cfg, self.group, out, 1))
+
+        def head() -> nn.Sequential:
+            return nn.Sequential(
+                _mlp(cfg, self.group, width_in, ln), _invariant_head(cfg, self.group, out, 1)
+            )
+
+        # q1, q2 and then the rest: a twin's parameter names and initial draws are the same as before
+        # heads could be added, so its checkpoints load and its updates keep their bits
+        self.q1, self.q2 = head(), head()
+        self.more_q = nn.ModuleList(head() for _ in range(cfg.critic_heads - 2))
 
     def features(
         self,
@@ -517,15 +530,15 @@ class Critic(_Recurrent):
             batch.images, batch.prev_actions, obs_mask=batch.obs_mask, real_images=batch.real_images
         )[0]
 
-    def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
-        """features (..., feature_dim), actions (..., 5) -> (Q1, Q2), each (...)."""
+    def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, ...]:
+        """features (..., feature_dim), actions (..., 5) -> (Q1, Q2, ...), one per head, each (...)."""
         x = torch.cat([features, self.q_action_embed(actions)], dim=-1)
-        return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
+        return tuple(h(x).squeeze(-1) for h in (self.q1, self.q2, *self.more_q))
 
 
 class StateCritic(nn.Module):
-    """Twin Q on the privileged state (``privileged.critic_state`` rows) and the action: plain MLPs
-    with LayerNorm. The rows are in a frame turned by their angle (column 0), so the action's
+    """``cfg.critic_heads`` Q heads (twin by default) on the privileged state
+    (``privileged.critic_state`` rows) and the action: plain MLPs with LayerNorm. The rows are in a frame turned by their angle (column 0), so the action's
     (dx, dy) is turned into it too: Q is then invariant under any rotation about z and horizontal
     translation of scene and action together (the symmetry the equivariant critic has for C4 only)."""
 
@@ -543,6 +556,7 @@ class StateCritic(nn.Module):
             return nn.Sequential(*layers, _plain_init(nn.Linear(width, 1), 1.0))
 
         self.q1, self.q2 = mlp(), mlp()
+        self.more_q = nn.ModuleList(mlp() for _ in range(cfg.critic_heads - 2))
 
     def features_of(self, batch: Any) -> Tensor:
         """The batch's privileged rows (B, L+1, STATE_DIM); ValueError if it carries none."""
@@ -553,8 +567,8 @@ class StateCritic(nn.Module):
             )
         return batch.state
 
-    def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
-        """features (..., STATE_DIM), actions (..., 5) -> (Q1, Q2), each (...)."""
+    def q(self, features: Tensor, actions: Tensor) -> tuple[Tensor, ...]:
+        """features (..., STATE_DIM), actions (..., 5) -> (Q1, Q2, ...), one per head, each (...)."""
         phi = features[..., CANONICAL_ANGLE]
         c, s = torch.cos(phi), torch.sin(phi)
         dx, dy = actions[..., 1], actions[..., 2]
@@ -562,7 +576,7 @@ class StateCritic(nn.Module):
             [actions[..., 0], c * dx + s * dy, -s * dx + c * dy, actions[..., 3], actions[..., 4]], -1
         )
         x = torch.cat([features[..., CANONICAL_ANGLE + 1 :], turned], dim=-1)
-        return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
+        return tuple(h(x).squeeze(-1) for h in (self.q1, self.q2, *self.more_q))
 
 
 def build_actor(cfg: NetConfig) -> Actor:

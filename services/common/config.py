@@ -51,7 +51,7 @@ class ServiceConfig:
     topic_caps: tuple[str, ...] = ()
     """Per-topic size caps, each TOPIC=BYTES."""
     run_key_file: str = ""
-    """The run's key file (sealed messages); empty: none."""
+    """Run key file (sealed messages); empty: none."""
 
     def __post_init__(self) -> None:
         if self.log_format not in ("json", "text"):

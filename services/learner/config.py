@@ -73,7 +73,7 @@ def prepare_device(device: str) -> torch.device:
 
 @dataclass(frozen=True)
 class LearnerConfig:
-    """Train a learner (recurrent SAC or GASv2) from replayed episodes and broadcast its policy's weights."""
+    """Train a learner (recurrent SAC or GASv2) on replayed episodes; broadcast its weights."""
 
     algorithm: AlgorithmSettings = field(default_factory=SacConfig)
     """The algorithm and its settings (SacConfig or GasV2Config)."""
@@ -82,7 +82,7 @@ class LearnerConfig:
     batch_size: int = 32
     """Episodes (SAC) or windows (gasv2) per update."""
     demo_fraction: float = 0.0
-    """Share of each batch from the demos (0: uniform)."""
+    """Batch share from the demos (0: uniform)."""
     successes_as_demos: bool = False
     """Successes join the demo set."""
     seq_len: int = 50
@@ -90,19 +90,19 @@ class LearnerConfig:
     samples_per_insert: float = 1.0
     """Updates per raw env step (Equi-RSAC: 1)."""
     min_steps: int = 100
-    """Raw env steps in replay before the first update."""
+    """Raw env steps before the first update."""
     error_buffer: float = 200.0
     """The replay gate's slack in updates."""
     publish_every: int = 10
-    """Announce new weights every this many updates."""
+    """Updates between weights announcements."""
     checkpoint_minutes: float = 10.0
     """Checkpoint period, minutes (0: off)."""
     checkpoint_every: int = 0
-    """Also checkpoint every this many updates (0: off)."""
+    """Also checkpoint every N updates (0: off)."""
     keep_checkpoints: int = 3
     """Checkpoints kept, newest first (at least 1)."""
     checkpoint_max_bytes: int = 0
-    """Bytes of checkpoints kept at most (0: no budget)."""
+    """Checkpoint bytes kept at most (0: no budget)."""
     run_dir: Path = Path("runs/learner")
     """Run directory: config and checkpoints/."""
     run_id: str = ""
@@ -110,9 +110,9 @@ class LearnerConfig:
     resume: bool = False
     """Continue from run_dir/checkpoints if any."""
     init_actor: Path | None = None
-    """The actor's starting weights (no checkpoint)."""
+    """Actor's starting weights (no checkpoint)."""
     max_updates: int = 0
-    """Stop after this many updates (0: until stopped)."""
+    """Stop after N updates (0: never)."""
     max_env_steps: int = 0
     """Env-step budget of the run (0: none)."""
     tensorboard_dir: Path | None = None
@@ -124,7 +124,7 @@ class LearnerConfig:
     device: str = "cpu"
     """torch device: cpu, cuda or cuda:N."""
     seed: int = 0
-    """Seed of networks, sampling and exploration noise."""
+    """Seed of nets, sampling and exploration."""
     queue: int = 64
     """Incoming episodes buffered before ingest."""
     inbox_mb: int = 1024

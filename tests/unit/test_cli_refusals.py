@@ -98,6 +98,29 @@ def test_bad_input_is_one_line_naming_the_option_exit_2_and_nothing_on_disk_chan
     assert snapshot(here) == before
 
 
+def _free(port: int) -> bool:
+    with socket.socket() as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _busy_port_above_free_ones(free_below: int) -> socket.socket:
+    """A listening socket on a port whose ``free_below`` ports under it are free: an ephemeral port
+    alone may sit just above another process's, and the run would then name that one."""
+    for _ in range(50):
+        busy = socket.socket()
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        if all(_free(port - k) for k in range(1, free_below + 1)):
+            return busy
+        busy.close()
+    raise RuntimeError(f"no ephemeral port with {free_below} free ports under it in 50 tries")
+
+
 @pytest.mark.parametrize("offset", [0, 1])  # the launcher's own port, the learner's (base + 1)
 def test_a_taken_metrics_port_is_one_line_before_anything_starts(offset, tmp_path, monkeypatch, capsys):
     import services.launcher
@@ -105,9 +128,7 @@ def test_a_taken_metrics_port_is_one_line_before_anything_starts(offset, tmp_pat
     here = tmp_path
     monkeypatch.chdir(here)
     monkeypatch.setattr(services.launcher, "_router", would_start)  # the check comes before the router
-    with socket.socket() as busy:
-        busy.bind(("127.0.0.1", 0))
-        busy.listen()
+    with _busy_port_above_free_ones(offset) as busy:
         port = busy.getsockname()[1]
         base = port - offset
         before = snapshot(here)

@@ -466,15 +466,18 @@ def test_cuda_graphs_are_refused_off_a_gpu_in_one_line_and_pad_every_batch_to_se
         assert sample.seq_len == want, graphs
 
 
-def _twin_sacs(device: str) -> tuple[RecurrentSAC, RecurrentSAC]:
+def _twin_sacs(
+    device: str, heads: int = 2, target_heads: int | None = None
+) -> tuple[RecurrentSAC, RecurrentSAC]:
+    net = dataclasses.replace(TINY_NET, critic_heads=heads)
     torch.manual_seed(0)
-    actor, critic = build_actor(TINY_NET), build_critic(TINY_NET)
+    actor, critic = build_actor(net), build_critic(net)
     twins = []
     for graphs in (False, True):
-        a, c = actor.__class__(TINY_NET), critic.__class__(TINY_NET)
+        a, c = actor.__class__(net), critic.__class__(net)
         a.load_state_dict(actor.state_dict())
         c.load_state_dict(critic.state_dict())
-        twins.append(RecurrentSAC(a, c, SacSettings(), device, cuda_graphs=graphs))
+        twins.append(RecurrentSAC(a, c, SacSettings(target_heads=target_heads), device, cuda_graphs=graphs))
     return twins[0], twins[1]
 
 
@@ -482,11 +485,13 @@ def _twin_sacs(device: str) -> tuple[RecurrentSAC, RecurrentSAC]:
 @pytest.mark.skipif(
     not CUDA, reason=f"CUDA is absent here (torch {torch.__version__}); tools/gpu-check.sh runs it"
 )
-def test_graphed_updates_replay_one_capture_and_learn_as_the_eager_ones():
+# 4 heads: the target's heads are drawn inside the graph
+@pytest.mark.parametrize("heads, target_heads", [(2, None), (4, 2)])
+def test_graphed_updates_replay_one_capture_and_learn_as_the_eager_ones(heads, target_heads):
     trainer = filled_trainer("cpu")
     rng = np.random.default_rng(0)
     samples = [trainer.replay.sample(4, rng, trim=False) for _ in range(9)]
-    eager, graphed = _twin_sacs("cuda")
+    eager, graphed = _twin_sacs("cuda", heads, target_heads)
     with full_fp32():
         for k, sample in enumerate(samples):
             batch = to_batch(sample, "cuda")

@@ -4,6 +4,7 @@ batch's losses and gradients; the BC term; the shared encoder; the critic's Laye
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ from services.algorithms.sac.losses import (
     conservative_gap,
     critic_loss,
     critic_targets,
+    masked_mean,
     policy_outputs,
 )
 from tests.unit.test_replay import make_episode
@@ -328,6 +330,38 @@ def test_descending_the_conservative_gap_ranks_the_tried_action_above_the_others
     tried = (batch.actions @ critic.w.detach())[m]
     untried = (torch.rand(64, B, L, A) * 2 - 1) @ critic.w.detach()
     assert float(tried.mean()) > float(untried[:, m].mean()) + 0.5
+
+
+def test_the_calibrated_term_floors_the_policys_value_at_the_return_to_go():
+    """Cal-QL: the policy action's Q enters the logsumexp as max(Q, floor); where the floor is above
+    it, descending the term no longer lowers the policy action's value."""
+    batch = to_batch(replay_with([4, 6], demos=1).sample(2, np.random.default_rng(3), trim=True))
+    B, L, A = batch.actions.shape
+    feats = torch.zeros(B, L + 1, 1)
+    policy = torch.rand(B, L, A, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    critic = ActionCritic(torch.linspace(-0.5, 0.5, A))
+    floor = torch.rand(B, L, generator=torch.Generator().manual_seed(2))
+    torch.manual_seed(0)
+    got = conservative_gap(critic, feats, batch, policy, 4, floor)
+    torch.manual_seed(0)
+    draws = [torch.rand_like(batch.actions) * 2 - 1 for _ in range(4)]
+    want = 0.0
+    for offset in (0.0, 0.5):  # the twin's two heads
+        q = [x @ critic.w + offset for x in draws] + [torch.maximum(policy @ critic.w + offset, floor)]
+        want = want + torch.logsumexp(torch.stack(q), 0) - math.log(5) - (batch.actions @ critic.w + offset)
+    torch.testing.assert_close(got, masked_mean(want, batch.mask))
+    # with the floor above every value, the policy's action no longer matters to the term
+    other = policy.flip(0)
+    for fl, same in ((torch.full((B, L), 10.0), True), (None, False)):
+        grads = []
+        for acts in (policy, other):
+            critic.w.grad = None
+            torch.manual_seed(0)
+            conservative_gap(critic, feats, batch, acts, 4, fl).backward()
+            grads.append(critic.w.grad.clone())
+        assert torch.allclose(grads[0], grads[1]) == same
+    with pytest.raises(ValueError, match="conservative_calibrated"):
+        SacSettings(conservative_calibrated=True)
 
 
 def test_the_conservative_term_is_reported_and_moves_the_critic_only_when_on():

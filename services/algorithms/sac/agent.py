@@ -41,6 +41,7 @@ from services.algorithms.sac.losses import (
     gathered,
     masked_mean,
     policy_outputs,
+    returns_to_go,
     soft_update,
 )
 from services.algorithms.tensors import actor_tensors
@@ -192,8 +193,9 @@ class RecurrentSAC:
         cql = None  # the TD loss alone is reported as critic_loss
         c_loss = q_loss
         if s.conservative_weight > 0:
+            floor = returns_to_go(batch.rewards, batch.mask, s.gamma) if s.conservative_calibrated else None
             cql = conservative_gap(
-                self.critic, feats, batch, fwd.policy.actions[:, :-1], CONSERVATIVE_ACTIONS
+                self.critic, feats, batch, fwd.policy.actions[:, :-1], CONSERVATIVE_ACTIONS, floor
             )
             c_loss = q_loss + s.conservative_weight * cql
         b_loss = self._bc_loss(batch, fwd) if w > 0 else None
@@ -267,9 +269,8 @@ class RecurrentSAC:
         )
         with torch.no_grad():
             target_feats = self.critic_target.features_of(batch)
-        targets = critic_targets(
-            self.critic_target, batch, policy, alpha, s.gamma, s.n_step, target_feats, s.backup_entropy
-        )
+        targets = critic_targets(self.critic_target, batch, policy, alpha, s.gamma, s.n_step, target_feats,
+                                 s.backup_entropy, s.target_heads)  # fmt: skip
         if s.return_bound:
             targets = bounded_targets(targets, batch, s.gamma)
         values = None

@@ -61,6 +61,9 @@ class SacConfig:
                              f"gasv2 learner's only), not {self.observation!r}")  # fmt: skip
         if self.net.critic_input == "state" and self.sac.share_encoder:
             raise ValueError("sac.share_encoder needs the image critic (net.critic_input image)")
+        if (self.sac.target_heads or 0) > self.net.critic_heads:
+            raise ValueError(f"sac.target_heads {self.sac.target_heads} exceeds net.critic_heads "
+                             f"{self.net.critic_heads}: the target's min draws from the critic's heads")  # fmt: skip
 
     @property
     def group(self) -> str:

@@ -33,9 +33,9 @@ class SacSettings:
     # scales log alpha's gradient by alpha, so alpha falls about 2.5x slower per update than with
     # "log_alpha" (Stable-Baselines3), whose gradient does not depend on alpha
     alpha_loss: str = "alpha"
-    """Temperature loss's c: alpha or log_alpha."""
+    """Temperature loss: alpha or log_alpha."""
     bc_weight: float = 0.0
-    """BC term's weight in the actor loss (0: off)."""
+    """BC term's weight (0: off)."""
     n_step: int = 1
     """n of n-step critic targets (1: Equi-RSAC)."""
     return_bound: bool = False
@@ -50,21 +50,29 @@ class SacSettings:
     bc_filter: bool = False
     """Clone only demo actions the critic prefers."""
     bc_decay_updates: int = 0
-    """Decay bc_weight to 0 over these updates (0: off)."""
+    """Updates to decay bc_weight to 0 (0: off)."""
     # CQL's term (Kumar et al. 2020) in the critic loss: an actor released from a clone climbs the
     # critic into actions near the clone's that it overrates
     conservative_weight: float = 0.0
-    """CQL term's weight in the critic loss (0: off)."""
+    """CQL term's weight (0: off)."""
+    # Cal-QL (Nakamoto et al. 2023): CQL's push-down stops at the data's return-to-go, so a
+    # released clone's actions are not rated below what its own episodes earned
+    conservative_calibrated: bool = False
+    """CQL: policy Q floored at return-to-go."""
     # crr (Wang et al. 2020): the weighted likelihood of replayed actions the critic rates above the
     # policy's own mean action, so the actor never follows the critic's gradient into actions that
     # no episode tried; crr_beta 0 keeps an action where its advantage is > 0, else weighs exp(A / beta)
     actor_objective: str = "sac"
-    """Actor loss: sac (Q's action gradient) or crr."""
+    """Actor loss: sac or crr."""
     crr_beta: float = 0.0
-    """crr: 0 keeps A > 0, else weighs exp(A / beta) <= 20."""
+    """crr: 0 keeps A > 0, else exp(A/beta) <= 20."""
+    # REDQ (Chen et al. 2021) draws 2 of many heads per update for the target's min; None takes the
+    # min over every head (the twin's rule; SAC-N's, An et al. 2021, with more heads)
+    target_heads: int | None = None
+    """Heads in the target's min; None: all."""
     # critic warm-up: BC (where on) still trains the actor meanwhile
     actor_warmup_updates: int = 0
-    """Updates before the actor term and alpha move."""
+    """Updates before actor and alpha move."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.gamma <= 1.0:
@@ -87,8 +95,12 @@ class SacSettings:
             raise ValueError(f"alpha_loss must be one of {ALPHA_LOSSES}, not {self.alpha_loss!r}")
         if self.conservative_weight < 0:
             raise ValueError(f"conservative_weight must be >= 0, got {self.conservative_weight}")
+        if self.conservative_calibrated and self.conservative_weight == 0:
+            raise ValueError("conservative_calibrated calibrates the CQL term: set conservative_weight > 0")
         if self.crr_beta < 0:
             raise ValueError(f"crr_beta must be >= 0, got {self.crr_beta}")
+        if self.target_heads is not None and self.target_heads < 1:
+            raise ValueError(f"target_heads must be >= 1, got {self.target_heads}")
         if self.actor_warmup_updates < 0:
             raise ValueError(f"actor_warmup_updates must be >= 0, got {self.actor_warmup_updates}")
 

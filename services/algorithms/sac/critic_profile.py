@@ -20,12 +20,13 @@ from services.algorithms.sac.losses import (
     Batch,
     action_values,
     gathered,
+    min_q,
     quarter_turned,
     reversed_move,
 )
 
 COLUMNS = ("recorded", "turned", "reversed", "random", "policy_mean")
-"""The actions rated at each step (min of the twin Q): the recorded one; its (dx, dy) turned a
+"""The actions rated at each step (min over the Q heads): the recorded one; its (dx, dy) turned a
 quarter; its move reversed (dx, dy, dz, dtheta negated, jaw kept); uniform random actions in the
 box (the mean over ``random_actions`` draws); the policy's squashed mean."""
 
@@ -69,7 +70,7 @@ def column_values(
     a = batch.actions
 
     def q(actions: Tensor) -> Tensor:
-        return torch.min(*critic.q(feats[:, :-1], actions))
+        return min_q(critic.q(feats[:, :-1], actions))
 
     draws = [
         q(torch.rand(a.shape, generator=generator, dtype=a.dtype) * 2 - 1) for _ in range(random_actions)
@@ -82,7 +83,7 @@ def column_values(
         "policy_mean": values.policy,
     }
     if live is not None:
-        out["live"] = torch.min(*live.q(live.features_of(batch)[:, :-1], a))
+        out["live"] = min_q(live.q(live.features_of(batch)[:, :-1], a))
     if targets is not None:
         out["target"] = targets(batch)
     return out

@@ -7,7 +7,9 @@ Design notes: docs/architecture-notes.md, services/algorithms/sac/losses.py."""
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -210,16 +212,32 @@ def returns_to_go(rewards: Tensor, mask: Tensor, gamma: float) -> Tensor:
     return n_step_targets(rewards * mask, zeros, mask, zeros, gamma, rewards.shape[1])
 
 
+def min_q(qs: Sequence[Tensor]) -> Tensor:
+    """The elementwise minimum over a critic's heads (``torch.min`` of the twin's two)."""
+    return functools.reduce(torch.minimum, qs)
+
+
+def subset_min_q(qs: Sequence[Tensor], subset: int | None) -> Tensor:
+    """``min_q`` over ``subset`` heads drawn at random for the whole batch (REDQ, Chen et al. 2021),
+    or over all of them (``subset`` None or >= their count: the twin's rule, SAC-N's for more). The
+    draw reads torch's generator only where it chooses, with torch.rand, which a CUDA graph replays."""
+    if subset is None or subset >= len(qs):
+        return min_q(qs)
+    stacked = torch.stack(tuple(qs))
+    drawn = torch.rand(len(qs), device=stacked.device).argsort()[:subset]
+    return stacked.index_select(0, drawn).amin(0)
+
+
 def critic_targets(
     critic_target: nn.Module, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float, gamma: float,
-    n_step: int = 1, feats: Tensor | None = None, backup_entropy: bool = True,
+    n_step: int = 1, feats: Tensor | None = None, backup_entropy: bool = True, target_heads: int | None = None,
 ) -> Tensor:  # fmt: skip
     """y_t (B, L), without gradient. ``feats``: the target critic's features of the batch, if computed;
-    ``backup_entropy`` False: V(s') is min Q alone, without the entropy bonus -alpha log pi."""
+    ``backup_entropy`` False: V(s') is min Q alone, without the entropy bonus -alpha log pi;
+    ``target_heads``: the min is over that many heads drawn at random (``subset_min_q``)."""
     with torch.no_grad():
         feats = critic_target.features_of(batch) if feats is None else feats
-        q1, q2 = critic_target.q(feats[:, 1:], policy.actions[:, 1:].detach())
-        soft_v = torch.min(q1, q2)
+        soft_v = subset_min_q(critic_target.q(feats[:, 1:], policy.actions[:, 1:].detach()), target_heads)
         if backup_entropy:
             soft_v = soft_v - alpha * policy.log_probs[:, 1:].detach()
         return n_step_targets(batch.rewards, batch.terminated, batch.mask, soft_v, gamma, n_step)
@@ -233,13 +251,14 @@ def bounded_targets(targets: Tensor, batch: Batch, gamma: float) -> Tensor:
 def critic_loss(
     critic: nn.Module, batch: Batch, targets: Tensor, feats: Tensor | None = None
 ) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
-    """Twin-Q regression onto ``targets``. Returns (loss, features of all L+1 steps, info).
-    ``feats``: the critic's features of this batch if already computed (with gradients)."""
+    """Every Q head's regression onto ``targets``, summed. Returns (loss, features of all L+1 steps,
+    info: the first two heads' mean Q). ``feats``: the critic's features of this batch if already
+    computed (with gradients)."""
     if feats is None:
         feats = critic.features_of(batch)
-    q1, q2 = critic.q(feats[:, :-1], batch.actions)
-    loss = masked_mean((q1 - targets).pow(2), batch.mask) + masked_mean((q2 - targets).pow(2), batch.mask)
-    info = {"q1": masked_mean(q1.detach(), batch.mask), "q2": masked_mean(q2.detach(), batch.mask)}
+    qs = critic.q(feats[:, :-1], batch.actions)
+    loss = functools.reduce(torch.add, (masked_mean((q - targets).pow(2), batch.mask) for q in qs))
+    info = {"q1": masked_mean(qs[0].detach(), batch.mask), "q2": masked_mean(qs[1].detach(), batch.mask)}
     return loss, feats, info
 
 
@@ -248,30 +267,39 @@ CONSERVATIVE_ACTIONS = 4
 
 
 def conservative_gap(
-    critic: nn.Module, feats: Tensor, batch: Batch, policy_actions: Tensor, random_actions: int
-) -> Tensor:
-    """CQL's term (Kumar et al. 2020), summed over the twin Q: the masked mean of logsumexp over
+    critic: nn.Module, feats: Tensor, batch: Batch, policy_actions: Tensor, random_actions: int,
+    floor: Tensor | None = None,
+) -> Tensor:  # fmt: skip
+    """CQL's term (Kumar et al. 2020), summed over the Q heads: the masked mean of logsumexp over
     ``random_actions`` uniform actions and the policy's sampled one, less log of their count, minus
     Q of the replayed action. Descending it lowers the values of actions no episode tried relative
     to the one tried, so an actor cannot climb the critic into them. Without CQL's importance
     weights (the sampled set is small, and a Q in [0, 1] keeps the softmax close to uniform).
-    ``feats``: the critic's features (L+1 steps, with gradients); ``policy_actions`` (B, L, A)."""
+    ``feats``: the critic's features (L+1 steps, with gradients); ``policy_actions`` (B, L, A).
+    ``floor`` (B, L): Cal-QL's calibration (Nakamoto et al. 2023), the policy's sampled action's Q
+    taken as at least this (the replayed episode's return-to-go), so the term never pushes the
+    policy's values below what the data's own actions earned from there."""
     h = feats[:, :-1]
     a = batch.actions
     draws = [torch.rand_like(a) * 2 - 1 for _ in range(random_actions)]
     tried = critic.q(h, a)
-    others = [critic.q(h, x) for x in (*draws, policy_actions.detach())]
+    policy_q = critic.q(h, policy_actions.detach())
+    if floor is not None:
+        policy_q = tuple(torch.maximum(q, floor) for q in policy_q)
+    others = [*(critic.q(h, x) for x in draws), policy_q]
     log_n = math.log(random_actions + 1)
-    gap = sum(torch.logsumexp(torch.stack([o[i] for o in others]), 0) - log_n - tried[i] for i in range(2))
+    gap = sum(
+        torch.logsumexp(torch.stack([o[i] for o in others]), 0) - log_n - tried[i] for i in range(len(tried))
+    )
     return masked_mean(gap, batch.mask)
 
 
 def actor_loss(
     critic: nn.Module, critic_features: Tensor, batch: Batch, policy: PolicyOutputs, alpha: Tensor | float
 ) -> Tensor:
-    """alpha log pi - min Q at the policy's own actions, on real transitions."""
-    q1, q2 = critic.q(critic_features[:, :-1].detach(), policy.actions[:, :-1])
-    return masked_mean(alpha * policy.log_probs[:, :-1] - torch.min(q1, q2), batch.mask)
+    """alpha log pi - min Q over every head at the policy's own actions, on real transitions."""
+    q = min_q(critic.q(critic_features[:, :-1].detach(), policy.actions[:, :-1]))
+    return masked_mean(alpha * policy.log_probs[:, :-1] - q, batch.mask)
 
 
 CRR_MAX_WEIGHT = 20.0
@@ -297,8 +325,8 @@ def action_values(
     """``ActionValues`` from critic features ``feats`` (B, L+1, F) and the policy's pre-squash ``mean``."""
     with torch.no_grad():
         f = feats[:, :-1].detach()
-        replayed = torch.min(*critic.q(f, batch.actions))
-        return ActionValues(replayed, torch.min(*critic.q(f, squash(mean[:, :-1].detach(), disc))))
+        replayed = min_q(critic.q(f, batch.actions))
+        return ActionValues(replayed, min_q(critic.q(f, squash(mean[:, :-1].detach(), disc))))
 
 
 def crr_weights(values: ActionValues, beta: float) -> Tensor:
@@ -370,8 +398,8 @@ def critique_demos(
     demo = batch.mask * batch.demo[:, None]
     with torch.no_grad():
         a = batch.actions
-        q_turned = torch.min(*critic.q(feats[:, :-1].detach(), quarter_turned(a)))
-        q_reversed = torch.min(*critic.q(feats[:, :-1].detach(), reversed_move(a)))
+        q_turned = min_q(critic.q(feats[:, :-1].detach(), quarter_turned(a)))
+        q_reversed = min_q(critic.q(feats[:, :-1].detach(), reversed_move(a)))
         keep = (values.advantage > 0).to(values.replayed.dtype)
         return DemoCritique(keep, masked_mean(keep, demo), masked_mean(values.replayed - q_turned, demo),
                             masked_mean(values.replayed - q_reversed, demo),

@@ -87,7 +87,7 @@ class ZenohConfig:
     multicast_scouting: bool = False
     """Multicast discovery (off: endpoints only)."""
     namespace: str = "default"
-    """Key namespace separating runs on one network."""
+    """Namespace separating runs on one network."""
     config_file: Annotated[str, tyro.conf.arg(aliases=("--zenoh-config",))] = ""
     """Zenoh's own config file (JSON5); empty: none."""
 
