@@ -15,6 +15,7 @@ import pytest
 
 from services.common import config
 from services.run_config import RunConfig
+from tests.helpers import port_is_free
 from tests.helpers.cli import run_cli
 from tests.helpers.tree import snapshot
 
@@ -98,15 +99,6 @@ def test_bad_input_is_one_line_naming_the_option_exit_2_and_nothing_on_disk_chan
     assert snapshot(here) == before
 
 
-def _free(port: int) -> bool:
-    with socket.socket() as probe:
-        try:
-            probe.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
-
-
 def _busy_port_above_free_ones(free_below: int) -> socket.socket:
     """A listening socket on a port whose ``free_below`` ports under it are free: an ephemeral port
     alone may sit just above another process's, and the run would then name that one."""
@@ -115,7 +107,7 @@ def _busy_port_above_free_ones(free_below: int) -> socket.socket:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         port = busy.getsockname()[1]
-        if all(_free(port - k) for k in range(1, free_below + 1)):
+        if all(port_is_free(port - k) for k in range(1, free_below + 1)):
             return busy
         busy.close()
     raise RuntimeError(f"no ephemeral port with {free_below} free ports under it in 50 tries")
