@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import itertools
 import json
 import math
 import sys
@@ -76,6 +77,14 @@ class CriticBenchConfig:
     """With --handover: also play the demo's own action, and that move reversed, before the policy."""
     behaviour: int = 0
     """Held-out starts from which the policy plays, to sum up what it did (0: off)."""
+    climb: int = 0
+    """Actor updates on the frozen target critic, played on held-out seeds (0: off)."""
+    climb_every: int = 10
+    """With --climb: updates between the plays."""
+    climb_actor: Path | None = None
+    """With --climb: the actor's starting weights (None: the checkpoint's)."""
+    climb_episodes: int = 20
+    """With --climb: held-out seeds per play."""
     json: bool = False
     """Print exactly one JSON object instead of tables."""
 
@@ -90,6 +99,10 @@ class CriticBenchConfig:
             raise ValueError("--handover-moves plays from the demonstrations' states: give --handover N too")
         if self.behaviour < 0:
             raise ValueError(f"--behaviour must be >= 0, got {self.behaviour}")
+        if self.climb < 0 or self.climb_every < 1 or self.climb_episodes < 1:
+            raise ValueError("--climb must be >= 0, --climb-every and --climb-episodes >= 1")
+        if self.climb_actor is not None and not self.climb:
+            raise ValueError("--climb-actor is where a climb starts: give --climb N too")
         if not self.handover_steps or min(self.handover_steps) < 1:
             raise ValueError(f"--handover-steps must be one or more integers >= 1, got {self.handover_steps}")
 
@@ -153,7 +166,8 @@ def _jsonable(profile: StepProfile) -> dict[str, Any]:
 def run(cfg: CriticBenchConfig) -> dict:
     assert cfg.run is not None
     algo = _algorithm(cfg.run)
-    inputs = _sim_inputs(cfg, algo) if cfg.handover or cfg.behaviour else None
+    inputs = _sim_inputs(cfg, algo) if cfg.handover or cfg.behaviour or cfg.climb else None
+    start = _climb_actor(cfg.climb_actor, algo) if cfg.climb_actor is not None else None
     try:
         path, learner, replay_state, _ = checkpoint.load_newest(cfg.run / "learner" / "checkpoints")
     except checkpoint.CheckpointError as exc:
@@ -175,6 +189,10 @@ def run(cfg: CriticBenchConfig) -> dict:
         out["handover"] = _handover(cfg, algo, agent, replay, inputs)
     if inputs is not None and cfg.behaviour:
         out["behaviour"] = _behaviour(cfg, algo, agent, inputs)
+    if inputs is not None and cfg.climb:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)  # the policy's sampling noise in the climb: the same run, the same table
+            out["climb"] = _climb(cfg, algo, agent, replay, inputs, start)
     if cfg.json:
         json.dump(out, sys.stdout)
         print()
@@ -331,6 +349,70 @@ def _behaviour(cfg: CriticBenchConfig, algo: SacConfig, agent, inputs: _SimInput
     if not cfg.json:
         print(behaviour_table(summary, labels) + "\n")
     return _summary_json(summary)
+
+
+def _climb_actor(path: Path, algo: SacConfig) -> dict[str, torch.Tensor]:
+    """The actor state ``--climb-actor`` names, fitted to the run's actor; refused in one line."""
+    from services.algorithms.networks import build_actor
+    from services.algorithms.tensors import fitting_state
+    from services.learner import init_actor
+
+    try:
+        _, blob = init_actor.read(path)
+        if blob.algorithm != algo.name:
+            raise ValueError(f"the weights are a {blob.algorithm} policy, the run trains {algo.name}")
+        return fitting_state(build_actor(algo.net), blob.tensors, blob.version)
+    except (OSError, ValueError) as exc:
+        refuse(PROG, f"--climb-actor {path}: {exc}")
+
+
+def _climb(
+    cfg: CriticBenchConfig, algo: SacConfig, agent, replay: SequenceReplay, inputs: _SimInputs,
+    start: dict[str, torch.Tensor] | None,
+) -> list[dict[str, Any]]:  # fmt: skip
+    """The actor stepped on the frozen target critic (``climb``), batches drawn as the run's learner
+    draws them, played by its mean action from the first ``--climb-episodes`` held-out starts at
+    every point."""
+    from mea_tools.bench.behaviour import play_behaviour
+    from proto.seeds import EVAL_SEED_BASE
+    from services.algorithms.sac.climb import climb
+
+    if start is not None:
+        agent.actor.load_state_dict(start)
+    draw = _learner_batches(cfg.run)
+    rng = np.random.default_rng(0)
+    batches = (to_batch(replay.sample(draw["batch_size"], rng, demo_fraction=draw["demo_fraction"],
+                                      successes_as_demos=draw["successes_as_demos"], trim=True))
+               for _ in itertools.count())  # fmt: skip
+    probe = to_batch(replay.gather(replay.slots(demo=True)[: cfg.batch]))
+    rows: list[dict[str, Any]] = []
+    with _policy_in_simulator(algo, agent, inputs) as (env, runtime, observe):
+        steps = climb(agent.actor, agent.critic_target, batches, cfg.climb, cfg.climb_every, algo.sac.actor_rate,
+                      float(agent.alpha), probe)  # fmt: skip
+        for point in steps:
+            plays = [
+                play_behaviour(env, runtime, observe, EVAL_SEED_BASE + i) for i in range(cfg.climb_episodes)
+            ]
+            rows.append({"updates": point.updates, "success": sum(p.success for p in plays) / len(plays),
+                         "q_sample": _num(point.q_sample), "q_mean": _num(point.q_mean),
+                         "q_recorded": _num(point.q_recorded)})  # fmt: skip
+    if not cfg.json:
+        head = (f"the actor climbing the frozen target critic (Adam at {algo.sac.actor_rate:g}, alpha "
+                f"{float(agent.alpha):.3g}); success of its mean action on {cfg.climb_episodes} held-out "
+                f"starts; min-Q on the first {probe.actions.shape[0]} demonstrations")  # fmt: skip
+        cols = ["updates", "success", "q_sample", "q_mean", "q_recorded"]
+        lines = [head, "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        lines += ["| " + " | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols) + " |"
+                  for r in rows]  # fmt: skip
+        print("\n".join(lines) + "\n")
+    return rows
+
+
+def _learner_batches(run: Path) -> dict[str, Any]:
+    """How the run's learner draws its batches (RUN_DIR/learner/learner.json, read by ``_algorithm``)."""
+    d = json.loads((run / "learner" / "learner.json").read_text())
+    return {"batch_size": int(d["batch_size"]), "demo_fraction": float(d.get("demo_fraction", 0.0)),
+            "successes_as_demos": bool(d.get("successes_as_demos", False))}  # fmt: skip
 
 
 __all__ = ["CriticBenchConfig", "run"]

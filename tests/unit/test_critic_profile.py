@@ -265,3 +265,17 @@ def test_the_handover_plays_each_recorded_demonstration_beside_its_critic(tmp_pa
     assert (last["return_recorded"], last["return_reversed"], last["return_gap"]) == (1.0, 0.0, 1.0)
     assert (earlier["k"], earlier["successes_recorded"], earlier["return_gap"]) == (3, 0, 0.0)
     assert last["critic_gap"] == pytest.approx(last["critic_recorded"] - last["critic_reversed"])
+
+
+def test_the_climb_options_are_refused_in_one_line(tmp_path, capsys):
+    from mea_tools.bench.critic import CriticBenchConfig, _algorithm, _climb_actor
+
+    for bad, says in (({"climb": -1}, "--climb must be >= 0"), ({"climb": 5, "climb_every": 0}, "--climb-every"),
+                      ({"climb_actor": tmp_path}, "give --climb N too")):  # fmt: skip
+        with pytest.raises(ValueError, match=says):
+            CriticBenchConfig(run=tmp_path, **bad)
+    algo = _algorithm(saved_run(tmp_path))
+    with pytest.raises(SystemExit):
+        _climb_actor(tmp_path / "absent", algo)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--climb-actor {tmp_path / 'absent'}:" in err
