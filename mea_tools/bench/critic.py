@@ -384,7 +384,9 @@ def _climb(
     batches = (to_batch(replay.sample(draw["batch_size"], rng, demo_fraction=draw["demo_fraction"],
                                       successes_as_demos=draw["successes_as_demos"], trim=True))
                for _ in itertools.count())  # fmt: skip
-    probe = to_batch(replay.gather(replay.slots(demo=True)[: cfg.batch]))
+    demos = replay.slots(demo=True)
+    kind = "demonstrations" if demos.size else "latest episodes"  # a run without demonstrations
+    probe = to_batch(replay.gather(demos[: cfg.batch] if demos.size else replay.slots()[-cfg.batch :]))
     rows: list[dict[str, Any]] = []
     with _policy_in_simulator(algo, agent, inputs) as (env, runtime, observe):
         steps = climb(agent.actor, agent.critic_target, batches, cfg.climb, cfg.climb_every, algo.sac.actor_rate,
@@ -399,7 +401,7 @@ def _climb(
     if not cfg.json:
         head = (f"the actor climbing the frozen target critic (Adam at {algo.sac.actor_rate:g}, alpha "
                 f"{float(agent.alpha):.3g}); success of its mean action on {cfg.climb_episodes} held-out "
-                f"starts; min-Q on the first {probe.actions.shape[0]} demonstrations")  # fmt: skip
+                f"starts; min-Q on {probe.actions.shape[0]} {kind}")  # fmt: skip
         cols = ["updates", "success", "q_sample", "q_mean", "q_recorded"]
         lines = [head, "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
         lines += ["| " + " | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols) + " |"
