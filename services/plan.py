@@ -147,7 +147,7 @@ def check_init_actor(run: RunConfig) -> None:
     if run.init_actor is None or "learner" not in run.services:
         return
     _, blob = init_actor.read(run.init_actor)
-    init_actor.check_fits(blob, learner_config(run, Path(run.run_dir or "."), ServiceConfig()))
+    init_actor.check_fits(blob, learner_config(run, Path(run.run_dir or "."), ServiceConfig()).algorithm)
 
 
 def evaluator_config(run: RunConfig, run_dir: Path, service: ServiceConfig) -> EvaluatorConfig:

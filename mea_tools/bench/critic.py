@@ -352,16 +352,12 @@ def _behaviour(cfg: CriticBenchConfig, algo: SacConfig, agent, inputs: _SimInput
 
 
 def _climb_actor(path: Path, algo: SacConfig) -> dict[str, torch.Tensor]:
-    """The actor state ``--climb-actor`` names, fitted to the run's actor; refused in one line."""
-    from services.algorithms.networks import build_actor
-    from services.algorithms.tensors import fitting_state
+    """The actor state ``--climb-actor`` names, fitted to the run's actor as the learner's
+    ``--init-actor`` is; refused in one line."""
     from services.learner import init_actor
 
     try:
-        _, blob = init_actor.read(path)
-        if blob.algorithm != algo.name:
-            raise ValueError(f"the weights are a {blob.algorithm} policy, the run trains {algo.name}")
-        return fitting_state(build_actor(algo.net), blob.tensors, blob.version)
+        return init_actor.check_fits(init_actor.read(path)[1], algo)
     except (OSError, ValueError) as exc:
         refuse(PROG, f"--climb-actor {path}: {exc}")
 

@@ -538,9 +538,10 @@ class Critic(_Recurrent):
 
 class StateCritic(nn.Module):
     """``cfg.critic_heads`` Q heads (twin by default) on the privileged state
-    (``privileged.critic_state`` rows) and the action: plain MLPs with LayerNorm. The rows are in a frame turned by their angle (column 0), so the action's
-    (dx, dy) is turned into it too: Q is then invariant under any rotation about z and horizontal
-    translation of scene and action together (the symmetry the equivariant critic has for C4 only)."""
+    (``privileged.critic_state`` rows) and the action: plain MLPs with LayerNorm. The rows are in a
+    frame turned by their angle (column 0), so the action's (dx, dy) is turned into it too: Q is then
+    invariant under any rotation about z and horizontal translation of scene and action together
+    (the symmetry the equivariant critic has for C4 only)."""
 
     def __init__(self, cfg: NetConfig) -> None:
         super().__init__()

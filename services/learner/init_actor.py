@@ -23,7 +23,7 @@ from services.common import run_key, weights_file
 
 if TYPE_CHECKING:
     from services.algorithms.trainer import Trainer
-    from services.learner.config import LearnerConfig
+    from services.learner.config import AlgorithmSettings
 
 KEY_SEARCH_DEPTH = 4
 """Directories searched for the writer's ``run.key``: the file's own and the three above it."""
@@ -61,10 +61,10 @@ def supports(algorithm: str) -> bool:
     return lookup(algorithm).config is SacConfig
 
 
-def check_fits(blob: WeightsBlob, cfg: LearnerConfig) -> dict[str, torch.Tensor]:
-    """``blob``'s tensors as the state dict of ``cfg``'s actor; ValueError unless the blob is a policy
-    of ``cfg``'s algorithm and observation whose tensors fit that actor name for name and shape for shape."""
-    algo = cfg.algorithm
+def check_fits(blob: WeightsBlob, algo: AlgorithmSettings) -> dict[str, torch.Tensor]:
+    """``blob``'s tensors as the state dict of ``algo``'s actor (a learner's ``algorithm``); ValueError
+    unless the blob is a policy of that algorithm and observation whose tensors fit that actor name
+    for name and shape for shape."""
     if not isinstance(algo, SacConfig):
         raise ValueError("only the Equi-RSAC learners (equi_rsac, rsac) start from an actor's weights")
     if blob.algorithm != algo.name:

@@ -225,7 +225,7 @@ class Learner:
         """Load the actor (and a critic encoder it shares) from weights on disk: ``--init-actor``."""
         try:
             file, blob = init_actor.read(path)
-            init_actor.load_into(self.trainer, init_actor.check_fits(blob, self.cfg))
+            init_actor.load_into(self.trainer, init_actor.check_fits(blob, self.cfg.algorithm))
         except ValueError as exc:
             raise SystemExit(f"learner: --init-actor: {exc}") from None
         log.info("actor initialised from weights", extra={"file": str(file), "source_run": blob.run_id,

@@ -50,7 +50,7 @@ def test_a_fresh_trainer_takes_the_actor_and_the_shared_encoder_and_keeps_its_ta
     trainer = tiny_trainer(sac=SHARED)
     cfg = tiny_learner_config(tmp_path, ServiceConfig(), sac=SHARED)
     assert not same(state(trainer.agent.actor), read.tensors)
-    init_actor.load_into(trainer, init_actor.check_fits(read, cfg))
+    init_actor.load_into(trainer, init_actor.check_fits(read, cfg.algorithm))
     sac = trainer.agent
     assert same(state(sac.actor), blob.tensors)
     encoder = {k.removeprefix("encoder."): v for k, v in blob.tensors.items() if k.startswith("encoder.")}
@@ -60,7 +60,9 @@ def test_a_fresh_trainer_takes_the_actor_and_the_shared_encoder_and_keeps_its_ta
     # without a shared encoder the critic keeps its own
     own = tiny_trainer()
     critic_before = state(own.agent.critic)
-    init_actor.load_into(own, init_actor.check_fits(read, tiny_learner_config(tmp_path, ServiceConfig())))
+    init_actor.load_into(
+        own, init_actor.check_fits(read, tiny_learner_config(tmp_path, ServiceConfig()).algorithm)
+    )
     assert same(state(own.agent.actor), blob.tensors) and same(state(own.agent.critic), critic_before)
 
 
@@ -68,11 +70,11 @@ def test_weights_that_do_not_fit_or_do_not_verify_are_refused(tmp_path):
     cfg = tiny_learner_config(tmp_path, ServiceConfig())
     wider = dataclasses.replace(TINY_NET, lstm_hidden=16)
     with pytest.raises(ValueError, match="do not fit the network"):
-        init_actor.check_fits(source_blob(net=wider), cfg)
+        init_actor.check_fits(source_blob(net=wider), cfg.algorithm)
     with pytest.raises(ValueError, match="observes 'depth'"):
-        init_actor.check_fits(source_blob(observation="depth"), cfg)
+        init_actor.check_fits(source_blob(observation="depth"), cfg.algorithm)
     with pytest.raises(ValueError, match="rsac policy"):
-        init_actor.check_fits(source_blob(algorithm="rsac"), cfg)
+        init_actor.check_fits(source_blob(algorithm="rsac"), cfg.algorithm)
 
     # a learner's sealed file is checked with its run's key (RUN/run.key beside RUN/learner/weights)
     run = tmp_path / "run"
